@@ -1,0 +1,19 @@
+"""Precompute the shape cache of a dataset (eigenbases, descriptors, optionally geodesics).
+
+    python data_prep/prepare.py data=faust_r data.root=/path/to/FAUST_r geodesics=heat
+
+Options: configs/prepare.yaml (and `--help`).
+"""
+
+import hydra
+
+from shapecorr.cli.prepare import prepare
+
+
+@hydra.main(version_base="1.3", config_path="../configs", config_name="prepare")
+def main(cfg) -> None:
+    prepare(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,38 @@
+"""Plumbing shared by the command-line entry points (train, evaluate, prepare)."""
+
+from __future__ import annotations
+
+import functools
+import sys
+from typing import Callable, TypeVar
+
+from shapecorr.errors import ShapeCorrError
+
+#: Exit status of a command that stopped on invalid input (a ShapeCorrError).
+EXIT_INVALID_INPUT = 2
+
+F = TypeVar("F", bound=Callable)
+
+
+def exit_on_user_error(fn: F) -> F:
+    """Run ``fn``; on a :class:`ShapeCorrError` print ``error: <message>`` to stderr (no traceback) and exit 2.
+
+    Only deliberate input/config errors are caught; genuine bugs keep their traceback.
+    """
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except ShapeCorrError as err:
+            print(f"error: {err}", file=sys.stderr)
+            sys.exit(EXIT_INVALID_INPUT)
+
+    return wrapper  # type: ignore[return-value]
+
+
+def user_config_error(err: Exception) -> ShapeCorrError:
+    """Wrap an OmegaConf/Hydra config error (missing mandatory value, bad interpolation) as a ConfigError."""
+    from shapecorr.errors import ConfigError
+
+    return ConfigError(f"invalid configuration: {err}")

@@ -1,0 +1,198 @@
+"""Lightning data module over pairs of shapes.
+
+Splits and pairing come from the data config (``configs/data/*.yaml``). One pair per batch: meshes differ in
+size, so batching happens by gradient accumulation in the Trainer (design.md, "Tensors and shapes").
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import fields
+from pathlib import Path
+from typing import Any, Mapping
+
+import pytorch_lightning as pl
+import torch
+from torch.utils.data import DataLoader
+
+from shapecorr.data.datasets import PairDataset, PairSample, ShapeDataset
+from shapecorr.data.operators import OperatorConfig
+from shapecorr.data.shape import Normalization
+from shapecorr.errors import ConfigError
+
+SPLITS = ("train", "val", "test")
+_SHAPE_SELECTORS = {"split", "names", "index_range", "split_file"}
+_PAIR_OPTIONS = {"pairs", "include_self", "pair_file", "max_pairs"}
+
+
+def _first_item(batch: list[PairSample]) -> PairSample:
+    """Collate for batch size 1: the pair itself (no stacking of differently sized meshes)."""
+    return batch[0]
+
+
+def _plain(value: Any) -> Any:
+    """OmegaConf containers -> Python containers (no-op on plain values)."""
+    try:
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+
+        if isinstance(value, (DictConfig, ListConfig)):
+            return OmegaConf.to_container(value, resolve=True)
+    except ImportError:  # pragma: no cover - hydra is a dependency
+        pass
+    return value
+
+
+def _dataclass_from(cls, value):
+    if value is None or isinstance(value, cls):
+        return cls() if value is None else value
+    value = _plain(value)
+    allowed = {f.name for f in fields(cls)}
+    unknown = set(value) - allowed
+    if unknown:
+        raise ConfigError(f"unknown {cls.__name__} option(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
+    return cls(**value)
+
+
+class ShapePairDataModule(pl.LightningDataModule):
+    """Train / val / test pairs of a FAUST/SCAPE-style folder.
+
+    Parameters
+    ----------
+    root
+        Dataset folder (see :mod:`shapecorr.data.datasets`).
+    splits
+        Per split (``train``, ``val``, ``test``) a selector: ``{split: NAME}`` (reads ``splits/NAME.txt``),
+        ``{index_range: [start, stop]}``, ``{split_file: PATH}`` or ``{names: [...]}``; ``{}`` = all shapes.
+    pairs
+        Per split the pairing options of :class:`PairDataset`: ``include_self``, ``pair_file``, ``max_pairs``.
+    normalization, operators
+        :class:`Normalization` and :class:`OperatorConfig` fields.
+    cache_dir
+        Shape-cache root (default ``$SHAPECORR_CACHE`` or ``~/.cache/shapecorr``).
+    num_workers
+        DataLoader worker processes.
+    prepare_workers
+        Processes computing missing cache entries before training (default: all CPUs).
+    synthetic
+        If given, the options of :class:`shapecorr.data.synthetic.SyntheticConfig`: the folder ``root`` is
+        generated on first use (the embedded default dataset).
+    shuffle_seed
+        Seed of the training-pair shuffling generator (reproducible epochs).
+    """
+
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        splits: Mapping[str, Mapping] | None = None,
+        pairs: Mapping[str, Mapping] | None = None,
+        normalization: Mapping | Normalization | None = None,
+        operators: Mapping | OperatorConfig | None = None,
+        cache_dir: str | os.PathLike | None = None,
+        num_workers: int = 0,
+        prepare_workers: int | None = None,
+        synthetic: Mapping | None = None,
+        shuffle_seed: int = 0,
+    ):
+        super().__init__()
+        self.root = Path(os.path.expanduser(str(root)))
+        self.split_selectors = {s: dict(_plain(v) or {}) for s, v in (_plain(splits) or {}).items()}
+        self.pair_options = {s: dict(_plain(v) or {}) for s, v in (_plain(pairs) or {}).items()}
+        for group, allowed in ((self.split_selectors, _SHAPE_SELECTORS), (self.pair_options, _PAIR_OPTIONS)):
+            for split, options in group.items():
+                if split not in SPLITS:
+                    raise ConfigError(f"unknown split {split!r}; use one of {SPLITS}")
+                unknown = set(options) - allowed
+                if unknown:
+                    raise ConfigError(f"unknown option(s) {sorted(unknown)} for split {split!r}; allowed: {sorted(allowed)}")
+        self.normalization = _dataclass_from(Normalization, normalization)
+        self.operators = _dataclass_from(OperatorConfig, operators)
+        self.cache_dir = cache_dir
+        self.num_workers = num_workers
+        self.prepare_workers = prepare_workers
+        self.synthetic = _plain(synthetic)
+        self.shuffle_seed = shuffle_seed
+        self._shapes: dict[str, ShapeDataset] = {}
+        self._pairs: dict[str, PairDataset] = {}
+
+    def with_operators(self, **changes) -> None:
+        """Extend the operator config (e.g. a model needing SHOT and 500 eigenpairs); call before setup."""
+        merged = {f.name: getattr(self.operators, f.name) for f in fields(OperatorConfig)}
+        for key, value in changes.items():
+            if key == "descriptors":
+                value = tuple(dict.fromkeys(tuple(merged["descriptors"]) + tuple(value)))
+            elif key == "n_eig":
+                value = max(merged["n_eig"], int(value))
+            merged[key] = value
+        self.operators = OperatorConfig(**merged)
+        self._shapes.clear()
+        self._pairs.clear()
+
+    def ensure_data(self) -> None:
+        """Generate the synthetic folder if this module is configured with one and it is missing."""
+        if self.synthetic is not None:
+            from shapecorr.data.synthetic import SyntheticConfig, ensure_synthetic_dataset
+
+            ensure_synthetic_dataset(self.root, _dataclass_from(SyntheticConfig, self.synthetic))
+
+    def shapes(self, split: str) -> ShapeDataset:
+        """The :class:`ShapeDataset` of a split (built once)."""
+        if split not in SPLITS:
+            raise ConfigError(f"unknown split {split!r}; use one of {SPLITS}")
+        if split not in self._shapes:
+            self.ensure_data()
+            self._shapes[split] = ShapeDataset(
+                self.root,
+                normalization=self.normalization,
+                operators=self.operators,
+                cache_dir=self.cache_dir,
+                **self.split_selectors.get(split, {}),
+            )
+        return self._shapes[split]
+
+    def pairs(self, split: str) -> PairDataset:
+        """The :class:`PairDataset` of a split (built once)."""
+        if split not in self._pairs:
+            self._pairs[split] = PairDataset(self.shapes(split), **self.pair_options.get(split, {}))
+        return self._pairs[split]
+
+    # Lightning hooks -------------------------------------------------------------------------------------
+    def prepare_data(self) -> None:
+        """Rank 0 only: generate data if needed and fill the cache for every split in parallel."""
+        self.ensure_data()
+        done = set()
+        for split in SPLITS:
+            ds = self.shapes(split)
+            key = tuple(ds.names)
+            if key not in done:
+                ds.prepare(num_workers=self.prepare_workers)
+                done.add(key)
+
+    def setup(self, stage: str | None = None) -> None:
+        for split in SPLITS:
+            self.pairs(split)
+
+    def _loader(self, split: str, shuffle: bool) -> DataLoader:
+        generator = torch.Generator().manual_seed(self.shuffle_seed) if shuffle else None
+        return DataLoader(
+            self.pairs(split),
+            batch_size=1,
+            shuffle=shuffle,
+            generator=generator,
+            num_workers=self.num_workers,
+            collate_fn=_first_item,
+            persistent_workers=self.num_workers > 0,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train", shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val", shuffle=False)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test", shuffle=False)
+
+    def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
+        if isinstance(batch, PairSample):
+            return batch.to(device)
+        return super().transfer_batch_to_device(batch, device, dataloader_idx)

@@ -1,0 +1,396 @@
+"""Datasets over a FAUST/SCAPE-style folder.
+
+Folder layout (the de-facto layout of FAUST_r / SCAPE_r and of ``data_prep/make_synthetic.py``)::
+
+    ROOT/
+      off/ or shapes/        meshes: <name>.off | .ply | .obj
+      corres/<name>.vts      optional: one-based vertex indices of R reference points (same r = same point)
+      corres/<name>.sym.vts  optional: the same for the left/right mirrored ground truth
+      splits/<split>.txt     optional: shape names (one per line) of a split, e.g. train.txt / test.txt
+
+:class:`ShapeDataset` yields one :class:`ShapeSample` per shape: the normalized :class:`Shape`, its
+eigenbasis, the configured descriptors and ground truth. :class:`PairDataset` yields ordered pairs.
+Derived quantities come from the on-disk :class:`~shapecorr.data.cache.ShapeCache`; missing entries are
+computed by :meth:`ShapeDataset.prepare` (in parallel worker processes, with a progress bar) — the data
+module calls it before training starts, and ``data_prep/prepare.py`` calls it ahead of time.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+from tqdm.auto import tqdm
+
+from shapecorr.data.cache import ShapeCache, default_cache_root
+from shapecorr.data.io import check_vts_lengths, load_shape, read_vts
+from shapecorr.data.operators import OperatorConfig, compute_operators, geodesics_cached
+from shapecorr.data.shape import Normalization, Shape
+from shapecorr.errors import DatasetError
+
+MESH_DIRS = ("off", "shapes")
+MESH_EXTENSIONS = (".off", ".ply", ".obj")
+
+
+@dataclass(frozen=True, eq=False)
+class ShapeSample:
+    """One shape with everything a model or the evaluation needs.
+
+    Attributes
+    ----------
+    shape : Shape
+        Normalized mesh (``verts (n, 3)`` float32, ``faces (f, 3)`` int64).
+    evals : (k,) float32
+        Laplace–Beltrami eigenvalues, ascending (standard ½-cot scale).
+    evecs : (n, k) float32
+        Mass-orthonormal eigenfunctions.
+    mass : (n,) float32
+        Lumped vertex areas.
+    features : dict[str, (n, c) float32]
+        Descriptors by name (``"shot"``, ``"wks"``, ``"hks"``), as configured.
+    corres : (R,) int64 or None
+        Zero-based vertex indices of the R reference points (``corres/<name>.vts``).
+    corres_sym : (R,) int64 or None
+        The same for the mirrored ground truth (``corres/<name>.sym.vts``).
+    """
+
+    shape: Shape
+    evals: torch.Tensor
+    evecs: torch.Tensor
+    mass: torch.Tensor
+    features: dict[str, torch.Tensor] = field(default_factory=dict)
+    corres: torch.Tensor | None = None
+    corres_sym: torch.Tensor | None = None
+
+    @property
+    def name(self) -> str:
+        return self.shape.name
+
+    @property
+    def verts(self) -> torch.Tensor:
+        return self.shape.verts
+
+    @property
+    def faces(self) -> torch.Tensor:
+        return self.shape.faces
+
+    def to(self, device: torch.device | str) -> "ShapeSample":
+        """Copy with every tensor on ``device``."""
+        move = lambda t: None if t is None else t.to(device)  # noqa: E731
+        return replace(
+            self,
+            shape=self.shape.to(device),
+            evals=move(self.evals),
+            evecs=move(self.evecs),
+            mass=move(self.mass),
+            features={k: v.to(device) for k, v in self.features.items()},
+            corres=move(self.corres),
+            corres_sym=move(self.corres_sym),
+        )
+
+    def __repr__(self) -> str:
+        return f"ShapeSample({self.name!r}, n={self.shape.n_verts}, k={self.evals.shape[0]}, features={list(self.features)})"
+
+
+@dataclass(frozen=True, eq=False)
+class PairSample:
+    """An ordered pair (x, y); maps go from x to y."""
+
+    x: ShapeSample
+    y: ShapeSample
+
+    @property
+    def name(self) -> str:
+        return pair_name(self.x.name, self.y.name)
+
+    def to(self, device: torch.device | str) -> "PairSample":
+        return PairSample(self.x.to(device), self.y.to(device))
+
+
+def pair_name(name_x: str, name_y: str) -> str:
+    """File-name stem of a pair's outputs: ``<x>__<y>``."""
+    return f"{name_x}__{name_y}"
+
+
+def find_mesh_files(root: Path) -> dict[str, Path]:
+    """Mesh files of a dataset folder by shape name (sorted).
+
+    Raises
+    ------
+    DatasetError
+        The folder does not exist, has no ``off/`` or ``shapes/`` sub-folder, has none of the known mesh
+        extensions, or two files share a name.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError("dataset folder does not exist", root)
+    mesh_dir = next((root / d for d in MESH_DIRS if (root / d).is_dir()), None)
+    if mesh_dir is None:
+        raise DatasetError(f"no mesh sub-folder: expected one of {'/, '.join(MESH_DIRS)}/", root)
+    files: dict[str, Path] = {}
+    for path in sorted(mesh_dir.iterdir()):
+        if path.suffix.lower() in MESH_EXTENSIONS and path.is_file():
+            if path.stem in files:
+                raise DatasetError(f"two mesh files named {path.stem!r}: {files[path.stem].name} and {path.name}", mesh_dir)
+            files[path.stem] = path
+    if not files:
+        raise DatasetError(f"no mesh files ({', '.join(MESH_EXTENSIONS)}) found", mesh_dir)
+    return files
+
+
+def select_names(
+    all_names: Sequence[str],
+    root: Path,
+    split: str | None = None,
+    names: Iterable[str] | None = None,
+    index_range: Sequence[int] | None = None,
+    split_file: str | os.PathLike | None = None,
+) -> list[str]:
+    """Names of the shapes in a split.
+
+    Precedence: explicit ``names`` > ``split_file`` > ``index_range`` ``[start, stop)`` into the sorted names
+    > ``ROOT/splits/<split>.txt`` > all shapes (``split=None``). A requested split without any of these is an
+    error, so a typo never silently trains on everything.
+    """
+    all_set = set(all_names)
+    if names is not None:
+        chosen, source = list(names), "the configured names"
+    elif split_file is not None or (split is not None and index_range is None):
+        path = Path(split_file) if split_file is not None else Path(root) / "splits" / f"{split}.txt"
+        if not path.is_file():
+            if split_file is None:
+                raise DatasetError(
+                    f"no split file for split {split!r} (expected splits/{split}.txt, or give an index range in "
+                    "the data config)", root)
+            raise DatasetError("split file does not exist", path)
+        chosen = [line.strip() for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
+        source = str(path)
+    elif index_range is not None:
+        start, stop = int(index_range[0]), int(index_range[1])
+        if not 0 <= start < stop <= len(all_names):
+            raise DatasetError(f"index range [{start}, {stop}) is outside the {len(all_names)} shapes", root)
+        return list(all_names[start:stop])
+    else:
+        return list(all_names)
+    missing = [n for n in chosen if n not in all_set]
+    if missing:
+        raise DatasetError(f"{len(missing)} shape(s) listed in {source} are not in the dataset: {missing[:5]}", root)
+    if not chosen:
+        raise DatasetError(f"{source} selects no shape", root)
+    return chosen
+
+
+def _prepare_one(args) -> str:
+    """Worker: load one mesh and fill its cache entries (runs in a separate process)."""
+    path, normalization, operators, cache_root, geodesics = args
+    shape = load_shape(path, normalization=normalization)
+    cache = ShapeCache(cache_root)
+    verts, faces = shape.verts.numpy(), shape.faces.numpy()
+    compute_operators(cache, verts, faces, operators)
+    if geodesics:
+        geodesics_cached(cache, verts, faces, method=geodesics)
+    return shape.name
+
+
+class ShapeDataset(Dataset):
+    """The shapes of a FAUST/SCAPE-style folder (see module docstring).
+
+    Parameters
+    ----------
+    root
+        Dataset folder.
+    split, names, index_range, split_file
+        Which shapes; see :func:`select_names`.
+    normalization
+        Applied on load (default: area-weighted centroid at the origin, sqrt(area) = 2/3).
+    operators
+        Eigenbasis size and descriptors to provide.
+    cache_dir
+        Root of the shape cache (default ``$SHAPECORR_CACHE`` or ``~/.cache/shapecorr``).
+    require_corres
+        Raise if a shape has no ``corres/<name>.vts``.
+    """
+
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        split: str | None = None,
+        names: Iterable[str] | None = None,
+        index_range: Sequence[int] | None = None,
+        split_file: str | os.PathLike | None = None,
+        normalization: Normalization = Normalization(),
+        operators: OperatorConfig = OperatorConfig(),
+        cache_dir: str | os.PathLike | None = None,
+        require_corres: bool = False,
+    ):
+        self.root = Path(root)
+        self.split = split
+        files = find_mesh_files(self.root)
+        self.names = select_names(list(files), self.root, split, names, index_range, split_file)
+        self.paths = [files[n] for n in self.names]
+        self.normalization = normalization
+        self.operators = operators
+        self.cache = ShapeCache(default_cache_root() if cache_dir is None else cache_dir)
+        self._index = {n: i for i, n in enumerate(self.names)}
+        self._corres_paths = {n: self._corres_path(n, ".vts") for n in self.names}
+        self._sym_paths = {n: self._corres_path(n, ".sym.vts") for n in self.names}
+        if require_corres:
+            missing = [n for n, p in self._corres_paths.items() if p is None]
+            if missing:
+                raise DatasetError(f"no ground truth corres/<name>.vts for {len(missing)} shape(s), e.g. {missing[0]}", self.root)
+        self._check_corres_lengths()
+
+    def _corres_path(self, name: str, suffix: str) -> Path | None:
+        path = self.root / "corres" / f"{name}{suffix}"
+        return path if path.is_file() else None
+
+    def _check_corres_lengths(self) -> None:
+        present = {str(p): read_vts(p) for p in self._corres_paths.values() if p is not None}
+        if present:
+            check_vts_lengths(present, self.root)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def index(self, name: str) -> int:
+        """Position of a shape by name."""
+        try:
+            return self._index[name]
+        except KeyError:
+            raise DatasetError(f"no shape named {name!r} in this split ({len(self.names)} shapes)", self.root) from None
+
+    def load_shape(self, i: int) -> Shape:
+        """The normalized mesh of shape ``i`` (no operators)."""
+        return load_shape(self.paths[i], normalization=self.normalization)
+
+    def __getitem__(self, i: int) -> ShapeSample:
+        shape = self.load_shape(i)
+        ops = compute_operators(self.cache, shape.verts.numpy(), shape.faces.numpy(), self.operators)
+        as_t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
+        name = shape.name
+        corres = self._read_corres(self._corres_paths[name], shape)
+        corres_sym = self._read_corres(self._sym_paths[name], shape)
+        return ShapeSample(
+            shape=shape,
+            evals=as_t(ops["evals"]),
+            evecs=as_t(ops["evecs"]),
+            mass=as_t(ops["mass"]),
+            features={k: as_t(ops[k]) for k in self.operators.descriptors},
+            corres=corres,
+            corres_sym=corres_sym,
+        )
+
+    @staticmethod
+    def _read_corres(path: Path | None, shape: Shape) -> torch.Tensor | None:
+        if path is None:
+            return None
+        return torch.from_numpy(read_vts(path, n_verts=shape.n_verts))
+
+    def geodesics(self, i: int, method: str = "heat") -> np.ndarray:
+        """All-pairs geodesic distances ``(n, n)`` float32 of shape ``i`` (normalized units), cached."""
+        shape = self.load_shape(i)
+        return geodesics_cached(self.cache, shape.verts.numpy(), shape.faces.numpy(), method=method)
+
+    def prepare(self, num_workers: int | None = None, geodesics: str | None = None, progress: bool = True) -> None:
+        """Compute every missing cache entry (eigenbasis, descriptors, optionally geodesics).
+
+        Runs in ``num_workers`` processes (default: the CPU count, at most the number of shapes) with a
+        progress bar; entries already cached are only read. Safe to interrupt: each entry is written atomically.
+        """
+        jobs = [(p, self.normalization, self.operators, self.cache.root, geodesics) for p in self.paths]
+        workers = min(os.cpu_count() or 1, len(jobs)) if num_workers is None else num_workers
+        desc = f"preparing {self.root.name}" + (f" [{self.split}]" if self.split else "")
+        if workers <= 1:
+            for job in tqdm(jobs, desc=desc, unit="shape", disable=not progress):
+                _prepare_one(job)
+            return
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            for _ in tqdm(pool.map(_prepare_one, jobs), total=len(jobs), desc=desc, unit="shape", disable=not progress):
+                pass
+
+    def __repr__(self) -> str:
+        return f"ShapeDataset(root={str(self.root)!r}, split={self.split!r}, n_shapes={len(self)})"
+
+
+def read_pair_file(path: str | os.PathLike) -> list[tuple[str, str]]:
+    """Pairs of shape names, one pair per line separated by tabs, commas or spaces (e.g. FAUST_r test_pairs.txt)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError("pair list file does not exist", path)
+    pairs = []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = [p for p in re.split(r"[\t, ]+", line) if p]
+        if len(parts) != 2:
+            raise DatasetError(f"line {lineno}: expected two shape names, got {line!r}", path)
+        pairs.append((parts[0], parts[1]))
+    if not pairs:
+        raise DatasetError("pair list file lists no pair", path)
+    return pairs
+
+
+class PairDataset(Dataset):
+    """Ordered pairs of shapes of a :class:`ShapeDataset`.
+
+    Parameters
+    ----------
+    shapes
+        The shapes.
+    pairs
+        Explicit pairs as (i, j) indices or (name_x, name_y) names; default: all ordered pairs.
+    include_self
+        With the default pairs, include (i, i) (Deep Shells and NeuroMorph train on self-pairs too).
+    pair_file
+        A pair list file (see :func:`read_pair_file`) instead of ``pairs``.
+    max_pairs
+        Keep an evenly spaced subset of at most this many pairs (deterministic), e.g. for validation.
+    """
+
+    def __init__(
+        self,
+        shapes: ShapeDataset,
+        pairs: Sequence[tuple[int | str, int | str]] | None = None,
+        include_self: bool = False,
+        pair_file: str | os.PathLike | None = None,
+        max_pairs: int | None = None,
+    ):
+        self.shapes = shapes
+        if pair_file is not None:
+            pairs = read_pair_file(pair_file)
+        if pairs is None:
+            n = len(shapes)
+            self.pairs = [(i, j) for i in range(n) for j in range(n) if include_self or i != j]
+        else:
+            self.pairs = [(self._as_index(a), self._as_index(b)) for a, b in pairs]
+        if max_pairs is not None and len(self.pairs) > max_pairs:
+            keep = np.linspace(0, len(self.pairs) - 1, max_pairs).round().astype(int)
+            self.pairs = [self.pairs[k] for k in keep]
+        if not self.pairs:
+            raise DatasetError("the pair list is empty (a single shape without self-pairs?)", shapes.root)
+
+    def _as_index(self, item: int | str) -> int:
+        if isinstance(item, str):
+            return self.shapes.index(item)
+        if not 0 <= int(item) < len(self.shapes):
+            raise DatasetError(f"pair index {item} is outside the {len(self.shapes)} shapes", self.shapes.root)
+        return int(item)
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def __getitem__(self, k: int) -> PairSample:
+        i, j = self.pairs[k]
+        return PairSample(self.shapes[i], self.shapes[j])
+
+    def names(self, k: int) -> tuple[str, str]:
+        i, j = self.pairs[k]
+        return self.shapes.names[i], self.shapes.names[j]

@@ -1,0 +1,158 @@
+"""ShapeDataset / PairDataset / ShapePairDataModule on a tiny hand-made folder."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from shapecorr.data.datamodule import ShapePairDataModule
+from shapecorr.data.datasets import PairDataset, ShapeDataset, read_pair_file
+from shapecorr.data.io import write_mesh, write_vts
+from shapecorr.data.operators import OperatorConfig
+from shapecorr.errors import ConfigError, CorrespondenceError, DatasetError
+
+N_SHAPES = 4
+N_REF = 30
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    """Four stretched icospheres (162 vertices) with vts files and train/test split files."""
+    root = tmp_path_factory.mktemp("tinyset")
+    (root / "off").mkdir()
+    (root / "corres").mkdir()
+    (root / "splits").mkdir()
+    base = trimesh.creation.icosphere(subdivisions=2)
+    rng = np.random.default_rng(0)
+    names = [f"shape_{i:03d}" for i in range(N_SHAPES)]
+    for i, name in enumerate(names):
+        verts = base.vertices * np.array([1.0 + 0.2 * i, 1.0, 1.0 - 0.1 * i]) + rng.normal(0, 1e-3, (len(base.vertices), 3))
+        write_mesh(root / "off" / f"{name}.off", verts, base.faces)
+        write_vts(root / "corres" / f"{name}.vts", np.arange(N_REF))
+    (root / "splits" / "train.txt").write_text("\n".join(names[:3]) + "\n")
+    (root / "splits" / "test.txt").write_text("\n".join(names[3:] + names[:1]) + "\n")
+    return root
+
+
+def test_shape_dataset_items(folder, tmp_path):
+    ds = ShapeDataset(folder, operators=OperatorConfig(n_eig=12), cache_dir=tmp_path)
+    assert ds.names == [f"shape_{i:03d}" for i in range(N_SHAPES)]
+    s = ds[1]
+    n = s.shape.n_verts
+    assert s.evecs.shape == (n, 12) and s.evals.shape == (12,) and s.mass.shape == (n,)
+    assert s.evecs.dtype == torch.float32
+    assert torch.equal(s.corres, torch.arange(N_REF))
+    assert s.corres_sym is None
+    # normalized: total area = (2/3)^2
+    assert float(s.mass.sum()) == pytest.approx(4.0 / 9.0, rel=1e-4)
+    # mass-orthonormal basis
+    gram = s.evecs.T.double() @ (s.mass.double()[:, None] * s.evecs.double())
+    assert torch.allclose(gram, torch.eye(12, dtype=torch.float64), atol=1e-4)
+
+
+def test_prepare_fills_cache_then_reads(folder, tmp_path, monkeypatch):
+    ds = ShapeDataset(folder, split="train", operators=OperatorConfig(n_eig=8), cache_dir=tmp_path)
+    ds.prepare(num_workers=1, progress=False)
+    import shapecorr.geometry.laplacian as lap
+
+    def fail(*a, **k):
+        raise AssertionError("eigenbasis recomputed although cached")
+
+    monkeypatch.setattr(lap, "eigenbasis", fail)
+    for i in range(len(ds)):
+        assert ds[i].evecs.shape[1] == 8
+
+
+def test_splits_and_pairs(folder, tmp_path):
+    train = ShapeDataset(folder, split="train", operators=OperatorConfig(n_eig=4), cache_dir=tmp_path)
+    assert train.names == ["shape_000", "shape_001", "shape_002"]
+    ranged = ShapeDataset(folder, index_range=[1, 3], operators=OperatorConfig(n_eig=4), cache_dir=tmp_path)
+    assert ranged.names == ["shape_001", "shape_002"]
+    assert len(PairDataset(train, include_self=True)) == 9
+    pairs = PairDataset(train)
+    assert len(pairs) == 6 and all(i != j for i, j in pairs.pairs)
+    sample = pairs[0]
+    assert (sample.x.name, sample.y.name) == pairs.names(0)
+    assert sample.name == f"{sample.x.name}__{sample.y.name}"
+    assert len(PairDataset(train, max_pairs=4)) == 4
+
+
+def test_pair_file(folder, tmp_path):
+    path = tmp_path / "pairs.txt"
+    path.write_text("shape_000\tshape_002\nshape_001 shape_000\n")
+    assert read_pair_file(path) == [("shape_000", "shape_002"), ("shape_001", "shape_000")]
+    ds = ShapeDataset(folder, operators=OperatorConfig(n_eig=4), cache_dir=tmp_path)
+    assert PairDataset(ds, pair_file=path).pairs == [(0, 2), (1, 0)]
+    path.write_text("shape_000\tnot_a_shape\n")
+    with pytest.raises(DatasetError, match="not_a_shape"):
+        PairDataset(ds, pair_file=path)
+
+
+@pytest.mark.parametrize(
+    "make, kwargs, error, text",
+    [
+        (lambda root: None, {}, DatasetError, "does not exist"),
+        (lambda root: root.mkdir(), {}, DatasetError, "no mesh sub-folder"),
+        (lambda root: (root / "off").mkdir(parents=True), {}, DatasetError, "no mesh files"),
+    ],
+)
+def test_bad_folders(tmp_path, make, kwargs, error, text):
+    root = tmp_path / "data"
+    make(root)
+    with pytest.raises(error, match=text) as info:
+        ShapeDataset(root, cache_dir=tmp_path, **kwargs)
+    assert "data" in str(info.value)
+
+
+def test_missing_split_and_bad_range(folder, tmp_path):
+    with pytest.raises(DatasetError, match="splits/val.txt"):
+        ShapeDataset(folder, split="val", cache_dir=tmp_path)
+    with pytest.raises(DatasetError, match="outside"):
+        ShapeDataset(folder, index_range=[2, 9], cache_dir=tmp_path)
+
+
+def test_vts_length_mismatch(folder, tmp_path):
+    import shutil
+
+    root = tmp_path / "copy"
+    shutil.copytree(folder, root)
+    write_vts(root / "corres" / "shape_002.vts", np.arange(N_REF - 1))
+    with pytest.raises(CorrespondenceError, match="shape_002"):
+        ShapeDataset(root, cache_dir=tmp_path)
+
+
+def test_datamodule_loaders(folder, tmp_path):
+    dm = ShapePairDataModule(
+        folder,
+        splits={"train": {"split": "train"}, "val": {"split": "test"}, "test": {"split": "test"}},
+        pairs={"train": {"include_self": True}, "val": {"max_pairs": 1}},
+        operators={"n_eig": 6},
+        cache_dir=tmp_path,
+        prepare_workers=1,
+    )
+    dm.prepare_data()
+    dm.setup("fit")
+    batches = list(dm.train_dataloader())
+    assert len(batches) == 9
+    assert len(list(dm.val_dataloader())) == 1
+    moved = dm.transfer_batch_to_device(batches[0], torch.device("cpu"), 0)
+    assert moved.x.evecs.device.type == "cpu"
+    # the same seed gives the same epoch order
+    again = [b.name for b in dm.train_dataloader()]
+    dm2 = ShapePairDataModule(folder, splits={"train": {"split": "train"}}, pairs={"train": {"include_self": True}},
+                              operators={"n_eig": 6}, cache_dir=tmp_path)
+    assert [b.name for b in dm2.train_dataloader()] == again
+    dm.with_operators(descriptors=["wks"], n_eig=8)
+    assert dm.operators.n_eig == 8 and dm.operators.descriptors == ("wks",)
+    assert dm.shapes("test")[0].features["wks"].shape[0] == dm.shapes("test")[0].shape.n_verts
+
+
+def test_datamodule_rejects_unknown_options(folder):
+    with pytest.raises(ConfigError, match="unknown"):
+        ShapePairDataModule(folder, splits={"trian": {}})
+    with pytest.raises(ConfigError, match="index_rnage"):
+        ShapePairDataModule(folder, splits={"train": {"index_rnage": [0, 1]}})
+    with pytest.raises(ConfigError, match="n_eigs"):
+        ShapePairDataModule(folder, operators={"n_eigs": 3})
