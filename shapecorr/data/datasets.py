@@ -239,6 +239,7 @@ class ShapeDataset(Dataset):
         self.operators = operators
         self.cache = ShapeCache(default_cache_root() if cache_dir is None else cache_dir)
         self._index = {n: i for i, n in enumerate(self.names)}
+        self._loaded: dict[int, Shape] = {}  # meshes are small next to their operators: keep them all
         self._corres_paths = {n: self._corres_path(n, ".vts") for n in self.names}
         self._sym_paths = {n: self._corres_path(n, ".sym.vts") for n in self.names}
         if require_corres:
@@ -267,8 +268,11 @@ class ShapeDataset(Dataset):
             raise DatasetError(f"no shape named {name!r} in this split ({len(self.names)} shapes)", self.root) from None
 
     def load_shape(self, i: int) -> Shape:
-        """The normalized mesh of shape ``i`` (no operators)."""
-        return load_shape(self.paths[i], normalization=self.normalization)
+        """The normalized mesh of shape ``i`` (no operators); read and validated once, then kept in memory."""
+        shape = self._loaded.get(i)
+        if shape is None:
+            shape = self._loaded[i] = load_shape(self.paths[i], normalization=self.normalization)
+        return shape
 
     def __getitem__(self, i: int) -> ShapeSample:
         shape = self.load_shape(i)

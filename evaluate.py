@@ -1,0 +1,18 @@
+"""Evaluate a matcher (or precomputed maps) on ordered pairs of a dataset; see configs/evaluate.yaml.
+
+    python evaluate.py model=descriptor_nn data=faust_r data.root=/path/to/FAUST_r pairs=test output_dir=OUT
+    python evaluate.py maps_dir=DIR data=folder data.root=DIR output_dir=OUT
+"""
+
+import hydra
+
+from shapecorr.cli.evaluate import evaluate
+
+
+@hydra.main(version_base="1.3", config_path="configs", config_name="evaluate")
+def main(cfg) -> None:
+    evaluate(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,272 @@
+"""``evaluate.py``: evaluate any matcher — learned, axiomatic, a baseline, or maps computed elsewhere.
+
+    python evaluate.py model=descriptor_nn data=faust_r data.root=DIR pairs=test output_dir=OUT
+    python evaluate.py model=<learned> ckpt_path=CKPT data=... output_dir=OUT
+    python evaluate.py maps_dir=DIR [maps_one_based=true maps_extension=map] data=... output_dir=OUT
+
+Options: ``configs/evaluate.yaml``. Steps:
+
+1. Build the matcher (``hydra.utils.instantiate(cfg.model)``, or ``load_from_checkpoint(ckpt_path)`` of the
+   model's class, or :class:`~shapecorr.matching.baselines.PrecomputedMaps` for ``maps_dir``) and the data
+   module; the matcher's ``required_operators`` (e.g. a descriptor) are added to the data's operators.
+2. Fill the shape cache of the split, geodesic matrices included (rank 0, parallel, progress bar).
+3. Evaluate this rank's shard of the pairs (:mod:`shapecorr.eval.protocol`): per-pair records, maps.
+4. Rank 0 merges the records of all pairs into ``metrics.json``, ``per_pair.csv``, ``pck.png`` and renders
+   ``examples/<x>__<y>.png``.
+
+Resumption: ``OUT/run.json`` records what is evaluated (matcher, checkpoint or maps folder, dataset, split,
+geodesics); a re-run with the same ``output_dir`` skips the pairs already done and refuses to mix results of a
+different run. DDP: launch with ``torchrun --nproc_per_node=N evaluate.py ...``; every rank evaluates every
+N-th pair into the same folder (a shared file system), then rank 0 writes the reports.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import platform
+import shutil
+import sys
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from shapecorr.cli.common import exit_on_user_error, user_config_error
+from shapecorr.data.cache import atomic_open
+from shapecorr.data.datasets import PairDataset, pair_name
+from shapecorr.errors import ConfigError
+from shapecorr.eval import protocol, reports
+from shapecorr.eval.export import map_paths
+from shapecorr.matching.baselines import PrecomputedMaps
+from shapecorr.matching.result import Matcher
+from shapecorr.viz.render import render_correspondence
+
+RUN_FILE = "run.json"
+EXAMPLES_DIR = "examples"
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> ``cuda:LOCAL_RANK`` when CUDA is available, else ``cpu``; anything else as given."""
+    import os
+
+    if name == "auto":
+        if torch.cuda.is_available():
+            return torch.device(f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}")
+        return torch.device("cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError as err:
+        raise ConfigError(f"invalid device {name!r}: {err}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"device={name} but CUDA is not available")
+    return device
+
+
+def build_matcher(cfg: DictConfig, device: torch.device):
+    """The matcher selected by ``model=`` (+ ``ckpt_path``) or ``maps_dir=`` (see the module docstring)."""
+    model_cfg = cfg.get("model")
+    if cfg.get("maps_dir"):
+        if model_cfg is not None:
+            raise ConfigError("give either model=<name> or maps_dir=DIR, not both")
+        return PrecomputedMaps(cfg.maps_dir, one_based=cfg.maps_one_based, extension=str(cfg.maps_extension))
+    if model_cfg is None:
+        raise ConfigError("nothing to evaluate: give model=<name> (e.g. model=descriptor_nn) or maps_dir=DIR")
+    if "_target_" not in model_cfg:
+        raise ConfigError("the model config has no _target_")
+    try:
+        if cfg.get("ckpt_path"):
+            path = Path(cfg.ckpt_path)
+            if not path.is_file():
+                raise ConfigError("checkpoint file does not exist", path)
+            cls = hydra.utils.get_class(model_cfg._target_)
+            if not hasattr(cls, "load_from_checkpoint"):
+                raise ConfigError(f"{model_cfg._target_} cannot load a checkpoint (no load_from_checkpoint)", path)
+            matcher = cls.load_from_checkpoint(str(path), map_location=device)
+        else:
+            matcher = hydra.utils.instantiate(model_cfg, _convert_="object")
+    except hydra.errors.InstantiationException as err:
+        raise ConfigError(f"cannot build the model: {err}") from None
+    if isinstance(matcher, torch.nn.Module):
+        matcher = matcher.eval().to(device)
+    if not isinstance(matcher, Matcher):
+        raise ConfigError(f"{type(matcher).__name__} has no match(x, y) method; it cannot be evaluated")
+    return matcher
+
+
+def _matcher_name(matcher) -> str:
+    return f"{type(matcher).__module__}.{type(matcher).__qualname__}"
+
+
+def _init_distributed(device: torch.device) -> tuple[int, int]:
+    rank, world = protocol.distributed_context()
+    if world > 1:
+        import torch.distributed as dist
+
+        if not dist.is_available():
+            raise ConfigError(f"WORLD_SIZE={world} but torch.distributed is not available")
+        if not dist.is_initialized():
+            if device.type == "cuda":
+                torch.cuda.set_device(device)
+            dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+        rank, world = dist.get_rank(), dist.get_world_size()
+    return rank, world
+
+
+def _barrier() -> None:
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        dist.barrier()
+
+
+def _check_run_file(out_dir: Path, fingerprint: dict[str, Any], resume: bool) -> None:
+    """Start a fresh output folder or make sure a resumed one holds the same run."""
+    run_file = out_dir / RUN_FILE
+    if run_file.is_file() and resume:
+        try:
+            previous = json.loads(run_file.read_text())
+        except (OSError, ValueError):
+            previous = None
+        if previous != fingerprint:
+            changed = sorted(k for k in fingerprint if previous is None or previous.get(k) != fingerprint[k])
+            raise ConfigError(
+                f"holds results of a different evaluation (differs in: {', '.join(changed) or 'format'}); "
+                "use another output_dir, or resume=false to start over",
+                out_dir,
+            )
+        return
+    if not resume:
+        shutil.rmtree(out_dir / protocol.RECORDS_DIR, ignore_errors=True)
+        shutil.rmtree(out_dir / EXAMPLES_DIR, ignore_errors=True)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with atomic_open(run_file) as fh:
+        fh.write((json.dumps(fingerprint, indent=1, sort_keys=True) + "\n").encode())
+
+
+def _peak_memory() -> dict[str, float]:
+    mem = reports.peak_memory_mb()
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        gathered: list[Any] = [None] * dist.get_world_size()
+        dist.all_gather_object(gathered, mem)
+        mem = {k: max(m.get(k, 0.0) for m in gathered) for k in set().union(*gathered)}
+    return mem
+
+
+def render_examples(out_dir: Path, shapes, pairs, records, n_examples: int, view) -> list[Path]:
+    """Texture-transfer renders of ``n_examples`` evenly spaced pairs (existing images are kept)."""
+    if n_examples <= 0 or not pairs:
+        return []
+    keep = sorted(set(np.linspace(0, len(pairs) - 1, min(n_examples, len(pairs))).round().astype(int).tolist()))
+    written = []
+    for k in keep:
+        (i, j), record = pairs[k], records[k]
+        path = out_dir / EXAMPLES_DIR / f"{pair_name(record.source, record.target)}.png"
+        npy = map_paths(out_dir, record.source, record.target)[1]
+        if path.is_file() or not npy.is_file():
+            continue
+        x, y = shapes.load_shape(i), shapes.load_shape(j)
+        p2p = np.load(npy, allow_pickle=False)
+        title = f"{record.source} -> {record.target}: mean error {record.mean_error:.4f}"
+        render_correspondence(path, x.verts, x.faces, y.verts, y.faces, p2p, title=title, view=view,
+                              names=(f"{record.source} (colors via map)", record.target))
+        written.append(path)
+    return written
+
+
+@exit_on_user_error
+def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
+    """Run the evaluation described by ``cfg`` (configs/evaluate.yaml); returns metrics on rank 0, else None."""
+    try:
+        out_dir = Path(str(cfg.output_dir))
+        device = resolve_device(str(cfg.device))
+        rank, world = _init_distributed(device)
+        matcher = build_matcher(cfg, device)
+        dm = hydra.utils.instantiate(cfg.data, _convert_="object")
+        view = tuple(OmegaConf.to_container(cfg.view, resolve=True))
+        settings = protocol.EvalSettings(
+            geodesics=str(cfg.geodesics),
+            conformal_clamp=float(cfg.conformal_clamp),
+            write_maps=bool(cfg.write_maps),
+            write_sequences=bool(cfg.write_sequences),
+            device=str(device),
+        )
+    except OmegaConfBaseException as err:
+        raise user_config_error(err) from err
+    except hydra.errors.InstantiationException as err:
+        raise ConfigError(f"cannot build the data module: {err}") from None
+    required = dict(getattr(matcher, "required_operators", {}) or {})
+    if required:
+        dm.with_operators(**required)
+    split = str(cfg.pairs)
+    shapes = dm.shapes(split)
+    base = PairDataset(shapes, pair_file=cfg.pair_file) if cfg.get("pair_file") else dm.pairs(split)
+    pair_ds = PairDataset(shapes, pairs=base.pairs, max_pairs=cfg.get("max_pairs"))
+    pairs = list(pair_ds.pairs)
+
+    fingerprint = {
+        "matcher": "maps_dir" if cfg.get("maps_dir") else _matcher_name(matcher),
+        "model": OmegaConf.to_container(cfg.model, resolve=True) if cfg.get("model") is not None else None,
+        "ckpt_path": str(cfg.ckpt_path) if cfg.get("ckpt_path") else None,
+        "maps_dir": str(cfg.maps_dir) if cfg.get("maps_dir") else None,
+        "data_root": str(shapes.root.resolve()),
+        "split": split,
+        "geodesics": settings.geodesics,
+        "normalization": repr(shapes.normalization),
+    }
+    if rank == 0:
+        _check_run_file(out_dir, fingerprint, bool(cfg.resume))
+        todo_targets = {j for (i, j) in pairs}
+        if todo_targets:
+            shapes.prepare(num_workers=None, geodesics=settings.geodesics, progress=bool(cfg.progress))
+    _barrier()
+
+    mine = protocol.shard_pairs(pairs, rank, world)
+    protocol.evaluate_pairs(
+        matcher,
+        shapes,
+        mine,
+        out_dir,
+        settings,
+        workers=int(cfg.workers),
+        start_method=str(cfg.start_method),
+        progress=bool(cfg.progress) and rank == 0,
+    )
+    _barrier()
+    memory = _peak_memory()
+    if rank != 0:
+        return None
+
+    loaded = [protocol.load_record(out_dir, shapes.names[i], shapes.names[j]) for i, j in pairs]
+    records = [r for r, _, _ in loaded]
+    result = reports.aggregate(records, [e for _, e, _ in loaded], [s for _, _, s in loaded])
+    result.update(memory)
+    result["run"] = {
+        **fingerprint,
+        "device": str(device),
+        "workers": int(cfg.workers),
+        "world_size": world,
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "command": " ".join(sys.argv),
+        "machine": platform.processor() or platform.machine(),
+        "torch": torch.__version__,
+    }
+    reports.write_metrics_json(out_dir / "metrics.json", result)
+    reports.write_per_pair_csv(out_dir / "per_pair.csv", records)
+    reports.write_pck_png(out_dir / "pck.png", result, label=fingerprint["matcher"].rsplit(".", 1)[-1])
+    render_examples(out_dir, shapes, pairs, records, int(cfg.n_examples), view)
+    summary = (
+        f"{result['n_pairs']} pairs: mean geodesic error {result['mean_geodesic_error']:.4f} "
+        f"(x100: {100 * result['mean_geodesic_error']:.2f}), PCK AUC {result['pck_auc']:.3f}, "
+        f"{result['seconds_per_pair']:.3f} s/pair -> {out_dir}"
+    )
+    if "mean_geodesic_error_sym" in result:
+        summary += f"; vs mirrored ground truth {result['mean_geodesic_error_sym']:.4f}"
+    print(summary)
+    return result

@@ -1,0 +1,242 @@
+"""Checks on mesh arrays, shared by the readers in :mod:`shapecorr.data.io` and by the datasets.
+
+Two levels:
+
+* :func:`check_mesh_arrays` checks only the structure: array shapes, dtypes, finite coordinates, face
+  indices in range. Every mesh that enters or leaves shapecorr must pass it (``write_mesh`` uses it too).
+* :func:`validate_mesh` adds the checks that the spectral pipeline needs (a cotangent Laplacian with a
+  lumped mass matrix): no face repeating a vertex, no unreferenced vertex (zero mass), at most a small
+  fraction of zero-area faces. Those problems raise :class:`~shapecorr.errors.InvalidMeshError`.
+
+Properties that real meshes often have and that most methods tolerate (non-manifold edges or vertices,
+several connected components, a few degenerate faces) emit a :class:`MeshWarning` naming the file and
+the mesh still loads: a method that cannot handle them must refuse them itself.
+
+Degenerate faces. A face counts as degenerate when its area is at most ``degenerate_tol`` times the mean
+face area of the mesh (relative, so the test does not depend on the units). Remeshed scans contain a few
+such slivers, so the mesh is rejected only when more than ``max_degenerate_fraction`` of its faces are
+degenerate; fewer produce a warning. A face that repeats a vertex index is always rejected: it is a
+connectivity error, not a sliver.
+"""
+
+from __future__ import annotations
+
+import warnings
+from os import PathLike
+
+import igl
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from shapecorr.errors import InvalidMeshError
+
+#: A face is degenerate when area <= DEFAULT_DEGENERATE_TOL * mean face area. Project choice (no published
+#: value): 1e-12 relative area is far below any sliver a remesher produces on purpose and well above
+#: float64 round-off of a genuinely flat triangle (~1e-16 relative).
+DEFAULT_DEGENERATE_TOL = 1e-12
+
+#: Largest fraction of degenerate faces accepted (with a warning). Project choice: 1e-3 lets through the
+#: handful of slivers found in remeshed scans (10 faces of a 10k-face FAUST_r shape) but rejects meshes
+#: whose Laplacian would be dominated by them.
+DEFAULT_MAX_DEGENERATE_FRACTION = 1e-3
+
+#: How many offending indices an error or warning message lists before "...".
+_MAX_LISTED = 5
+
+
+class MeshWarning(UserWarning):
+    """A mesh has a property some methods cannot handle (non-manifold, several components, slivers)."""
+
+
+def _where(path: str | PathLike | None) -> str:
+    return f"{path}: " if path is not None else ""
+
+
+def _listing(indices: np.ndarray) -> str:
+    shown = ", ".join(str(int(i)) for i in indices[:_MAX_LISTED])
+    return shown + (", ..." if len(indices) > _MAX_LISTED else "")
+
+
+def check_mesh_arrays(
+    verts: np.ndarray, faces: np.ndarray, path: str | PathLike | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Check the structure of a triangle mesh and return it as float64 / int64 arrays.
+
+    Parameters
+    ----------
+    verts : (n, 3) float
+        Vertex positions; must be finite.
+    faces : (f, 3) int
+        Zero-based triangle indices in ``[0, n)``.
+    path
+        File the mesh came from, named in error messages.
+
+    Returns
+    -------
+    verts : (n, 3) float64
+    faces : (f, 3) int64
+
+    Raises
+    ------
+    InvalidMeshError
+        Empty arrays, wrong shapes or dtypes, NaN/Inf coordinates, face indices out of range.
+    """
+    v = np.asarray(verts)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise InvalidMeshError(f"vertices must have shape (n, 3), got {v.shape}", path)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise InvalidMeshError(f"faces must have shape (f, 3) (triangles), got {f.shape}", path)
+    if v.shape[0] == 0:
+        raise InvalidMeshError("mesh has no vertices", path)
+    if f.shape[0] == 0:
+        raise InvalidMeshError("mesh has no faces", path)
+    if v.dtype.kind not in "fiu":
+        raise InvalidMeshError(f"vertices must be numeric, got dtype {v.dtype}", path)
+    if f.dtype.kind not in "iu":
+        raise InvalidMeshError(f"faces must be integers, got dtype {f.dtype}", path)
+    v = v.astype(np.float64, copy=False)
+    bad_rows = np.flatnonzero(~np.isfinite(v).all(axis=1))
+    if len(bad_rows):
+        raise InvalidMeshError(
+            f"{len(bad_rows)} vertices have NaN/Inf coordinates (vertex {_listing(bad_rows)}, zero-based)", path
+        )
+    n = v.shape[0]
+    bad_faces = np.flatnonzero(((f < 0) | (f >= n)).any(axis=1))
+    if len(bad_faces):
+        first = f[bad_faces[0]].tolist()
+        raise InvalidMeshError(
+            f"{len(bad_faces)} faces have a vertex index outside [0, {n}) (face {_listing(bad_faces)}, "
+            f"zero-based; first is {first})",
+            path,
+        )
+    return v, f.astype(np.int64, copy=False)
+
+
+def non_manifold_edges(faces: np.ndarray) -> np.ndarray:
+    """Undirected edges shared by more than two faces.
+
+    Parameters
+    ----------
+    faces : (f, 3) int
+
+    Returns
+    -------
+    (e, 2) int64
+        Each edge as (smaller index, larger index), sorted.
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    edges = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    # One int64 code per undirected edge: a 1-D unique is much faster than unique(axis=0).
+    base = int(f.max()) + 1 if f.size else 1
+    codes, counts = np.unique(edges[:, 0] * base + edges[:, 1], return_counts=True)
+    shared = codes[counts > 2]
+    return np.stack([shared // base, shared % base], axis=1)
+
+
+def validate_mesh(
+    verts: np.ndarray,
+    faces: np.ndarray,
+    path: str | PathLike | None = None,
+    degenerate_tol: float = DEFAULT_DEGENERATE_TOL,
+    max_degenerate_fraction: float = DEFAULT_MAX_DEGENERATE_FRACTION,
+    allow_unreferenced: bool = False,
+) -> list[str]:
+    """Check that a triangle mesh is usable by the spectral pipeline.
+
+    Parameters
+    ----------
+    verts : (n, 3) float
+    faces : (f, 3) int
+        Zero-based triangles.
+    path
+        File the mesh came from, named in errors and warnings.
+    degenerate_tol
+        A face is degenerate when its area is at most ``degenerate_tol`` times the mean face area.
+    max_degenerate_fraction
+        Largest fraction of degenerate faces accepted (with a warning); more raises.
+    allow_unreferenced
+        Accept vertices that no face uses (with a warning) instead of raising.
+
+    Returns
+    -------
+    list[str]
+        The messages emitted as :class:`MeshWarning` (prefixed with the path), empty for a clean mesh.
+
+    Raises
+    ------
+    InvalidMeshError
+        Structure errors (see :func:`check_mesh_arrays`), a face repeating a vertex index, unreferenced
+        vertices (unless allowed), too many degenerate faces.
+    """
+    v, f = check_mesh_arrays(verts, faces, path)
+    n = v.shape[0]
+    messages: list[str] = []
+
+    repeated = np.flatnonzero((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0]))
+    if len(repeated):
+        raise InvalidMeshError(
+            f"{len(repeated)} faces repeat a vertex index (face {_listing(repeated)}, zero-based; "
+            f"first is {f[repeated[0]].tolist()})",
+            path,
+        )
+
+    referenced = np.zeros(n, dtype=bool)
+    referenced[f.ravel()] = True
+    unreferenced = np.flatnonzero(~referenced)
+    if len(unreferenced):
+        message = (
+            f"{len(unreferenced)} of {n} vertices are not used by any face (vertex {_listing(unreferenced)}, "
+            "zero-based)"
+        )
+        if not allow_unreferenced:
+            hint = "; they would get zero mass (pass allow_unreferenced=True to accept)"
+            raise InvalidMeshError(message + hint, path)
+        messages.append(message)
+
+    tri = v[f]
+    areas = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    degenerate = np.flatnonzero(areas <= degenerate_tol * areas.mean())
+    if len(degenerate):
+        message = (
+            f"{len(degenerate)} of {len(f)} faces are degenerate (area <= {degenerate_tol:g} x mean face area; "
+            f"face {_listing(degenerate)}, zero-based)"
+        )
+        if len(degenerate) > max_degenerate_fraction * len(f):
+            raise InvalidMeshError(message + f", more than the allowed fraction {max_degenerate_fraction:g}", path)
+        messages.append(message)
+
+    bad_edges = non_manifold_edges(f)
+    if len(bad_edges):
+        messages.append(
+            f"{len(bad_edges)} non-manifold edges (shared by more than two faces; first is {bad_edges[0].tolist()})"
+        )
+
+    # igl reports unreferenced vertices as non-manifold too (zero incident face fans): mask them out.
+    # Its output has max(faces) + 1 entries, not n.
+    vertex_ok = np.ones(n, dtype=bool)
+    flags = np.asarray(igl.is_vertex_manifold(np.ascontiguousarray(f)), dtype=bool)
+    vertex_ok[: len(flags)] = flags
+    bad_verts = np.flatnonzero(~vertex_ok & referenced)
+    if len(bad_verts):
+        messages.append(
+            f"{len(bad_verts)} non-manifold vertices (their faces form more than one fan; vertex "
+            f"{_listing(bad_verts)}, zero-based)"
+        )
+
+    rows = f[:, [0, 1, 2]].ravel()
+    cols = f[:, [1, 2, 0]].ravel()
+    adjacency = sp.coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n, n))
+    _, labels = connected_components(adjacency, directed=False)
+    sizes = np.bincount(labels[referenced])
+    sizes = np.sort(sizes[sizes > 0])[::-1]
+    if len(sizes) > 1:
+        messages.append(
+            f"mesh has {len(sizes)} connected components (vertex counts {_listing(sizes)})"
+        )
+
+    messages = [f"{_where(path)}{message}" for message in messages]
+    for message in messages:
+        warnings.warn(message, MeshWarning, stacklevel=2)
+    return messages

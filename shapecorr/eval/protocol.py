@@ -1,0 +1,452 @@
+"""Per-pair evaluation: run a matcher on one ordered pair, score its map against the ground truth, store it.
+
+Protocol (design.md "Evaluation protocol"; methods-digest §7): for a pair (X, Y) the map X -> Y is scored at
+the reference points of the ground truth (``corres/<name>.vts``; the identity for shapes sharing their
+connectivity without ``.vts``) with geodesic distances on Y from the shape cache, normalized by sqrt(area(Y))
+computed from Y's faces. When Y has a mirrored ground truth (``.sym.vts``) the same map is also scored
+against it; that number is reported separately and never mixed into the main error.
+
+Per pair, under the output folder::
+
+    maps/<x>__<y>.txt, maps/<x>__<y>.npy     the map (see :mod:`shapecorr.eval.export`)
+    pairs/<x>__<y>.npz                       per-reference-point errors (``errors``, ``errors_sym``)
+    pairs/<x>__<y>.json                      the :class:`PairRecord`, written last
+
+A pair is *done* when its record exists (every file is written atomically and the record last), so an
+interrupted run resumes with the pairs that are missing.
+
+Parallelism: :func:`evaluate_pairs` runs pairs in ``workers`` CPU processes (each holding a copy of the
+matcher and the dataset); with ``workers=0`` everything runs in the calling process, which is what a
+matcher on a GPU needs. Under DDP every rank evaluates its shard (:func:`shard_pairs`) into the same folder;
+the records are the per-pair results that rank 0 merges afterwards (``shapecorr.cli.evaluate``).
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import time
+from collections import OrderedDict
+from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from shapecorr.data.cache import atomic_open
+from shapecorr.data.datasets import pair_name
+from shapecorr.errors import ConfigError, CorrespondenceError, InvalidMeshError
+from shapecorr.eval import metrics
+from shapecorr.eval.export import write_map_files, write_sequence
+
+RECORDS_DIR = "pairs"
+#: Number of ShapeSamples (eigenbasis + descriptors) kept in memory per process (~5 MB each at 5k vertices).
+DEFAULT_SAMPLE_CACHE = 32
+#: Number of geodesic matrices kept in memory per process (100 MB each at 5k vertices).
+DEFAULT_GEODESIC_CACHE = 2
+GEODESIC_METHODS = ("heat", "exact")
+START_METHODS = ("spawn", "forkserver", "fork")
+
+
+@dataclass
+class PairRecord:
+    """Scalar results of one evaluated pair (the row of ``per_pair.csv``).
+
+    Attributes
+    ----------
+    source, target : str
+        Shape names; the map goes from source to target.
+    mean_error, median_error : float
+        Over the reference points, as fractions of sqrt(area(target)).
+    n_points : int
+        Number of reference points.
+    seconds : float
+        Wall time of the matcher alone (``match``), including moving the pair to the device.
+    eval_seconds : float
+        Wall time of everything else for this pair (loading, scoring, writing).
+    conformal_distortion : float
+        Area-weighted conformal distortion of the map (:func:`shapecorr.eval.metrics.map_conformal_distortion`).
+    mean_error_sym : float or None
+        Mean error against the mirrored ground truth, when the target has one.
+    chamfer, chamfer_one_sided, volume_change, deformation_conformal_distortion : float or None
+        For interpolating matchers: two-sided / one-sided Chamfer distance between the last frame and the
+        target (fractions of sqrt(area(target))), relative volume change of the last frame (closed meshes
+        only), and the conformal distortion of the frames averaged over time.
+    """
+
+    source: str
+    target: str
+    mean_error: float
+    median_error: float
+    n_points: int
+    seconds: float
+    eval_seconds: float
+    conformal_distortion: float
+    mean_error_sym: float | None = None
+    chamfer: float | None = None
+    chamfer_one_sided: float | None = None
+    volume_change: float | None = None
+    deformation_conformal_distortion: float | None = None
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "PairRecord":
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in names})
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    """How pairs are evaluated.
+
+    Attributes
+    ----------
+    geodesics : {"heat", "exact"}
+        Geodesic distances used for the errors (``exact`` for final numbers, methods-digest §7).
+    conformal_clamp : float
+        Per-triangle clamp of the conformal distortion.
+    write_maps : bool
+        Write ``maps/<x>__<y>.txt`` and ``.npy``.
+    write_sequences : bool
+        Write interpolation frames as PLY files (matchers returning a deformation).
+    device : str
+        Device the pair is moved to before ``match`` (``cpu``, ``cuda:0``, ...).
+    sample_cache, geodesic_cache : int
+        In-memory LRU sizes per process.
+    """
+
+    geodesics: str = "heat"
+    conformal_clamp: float = metrics.CONFORMAL_DISTORTION_CLAMP
+    write_maps: bool = True
+    write_sequences: bool = True
+    device: str = "cpu"
+    sample_cache: int = DEFAULT_SAMPLE_CACHE
+    geodesic_cache: int = DEFAULT_GEODESIC_CACHE
+
+    def __post_init__(self):
+        if self.geodesics not in GEODESIC_METHODS:
+            raise ConfigError(f"geodesics must be one of {GEODESIC_METHODS}, got {self.geodesics!r}")
+        if self.sample_cache < 1 or self.geodesic_cache < 1:
+            raise ConfigError("sample_cache and geodesic_cache must be >= 1")
+
+
+# --------------------------------------------------------------------------------------------------------
+# Scoring one map
+# --------------------------------------------------------------------------------------------------------
+def score_map(p2p, x, y, dist_y: np.ndarray, clamp: float = metrics.CONFORMAL_DISTORTION_CLAMP) -> dict[str, Any]:
+    """Score a map x -> y against the ground truth of the pair.
+
+    Parameters
+    ----------
+    p2p : (n_x,) int
+        Map x -> y.
+    x, y : ShapeSample
+        The pair (``corres``/``corres_sym`` give the ground truth).
+    dist_y : (n_y, n_y) float
+        Geodesic distances on y.
+    clamp : float
+        Conformal-distortion clamp.
+
+    Returns
+    -------
+    dict with ``errors (R,)``, ``errors_sym (R,)`` or None, and ``conformal_distortion`` (float).
+    """
+    p2p = np.asarray(p2p.detach().cpu().numpy() if hasattr(p2p, "detach") else p2p)
+    n_x, n_y = x.shape.n_verts, y.shape.n_verts
+    if p2p.shape != (n_x,):
+        raise CorrespondenceError(
+            f"the map of pair {pair_name(x.name, y.name)} has {p2p.shape[0] if p2p.ndim else 0} entries but "
+            f"{x.name} has {n_x} vertices"
+        )
+    if dist_y.shape != (n_y, n_y):
+        raise CorrespondenceError(f"geodesic matrix of {y.name} has shape {dist_y.shape}, expected ({n_y}, {n_y})")
+    as_np = lambda t: None if t is None else t.detach().cpu().numpy()  # noqa: E731
+    faces_x, faces_y = as_np(x.shape.faces), as_np(y.shape.faces)
+    verts_x, verts_y = as_np(x.shape.verts), as_np(y.shape.verts)
+    ref_x, ref_y = metrics.ground_truth_indices(as_np(x.corres), as_np(y.corres), n_x, n_y, faces_x, faces_y)
+    sqrt_area_y = float(np.sqrt(metrics.surface_area(verts_y, faces_y)))
+    errors = metrics.geodesic_errors(p2p, dist_y, ref_x, ref_y, sqrt_area_y)
+    errors_sym = None
+    if y.corres_sym is not None and x.corres is not None:
+        errors_sym = metrics.geodesic_errors(p2p, dist_y, ref_x, as_np(y.corres_sym), sqrt_area_y)
+    distortion = metrics.map_conformal_distortion(verts_x, faces_x, verts_y, p2p, clamp)
+    return {"errors": errors, "errors_sym": errors_sym, "conformal_distortion": distortion}
+
+
+def score_deformation(frames, x, y, clamp: float = metrics.CONFORMAL_DISTORTION_CLAMP) -> dict[str, float | None]:
+    """Metrics of an interpolation of x towards y (methods-digest §5.7, scale-invariant where it matters).
+
+    Parameters
+    ----------
+    frames : (T, n_x, 3) float
+        Positions of x's vertices over time; the last frame is compared with y.
+    x, y : ShapeSample
+
+    Returns
+    -------
+    dict with ``chamfer`` and ``chamfer_one_sided`` (last frame vs y, fractions of sqrt(area(y))),
+    ``volume_change`` (relative, last frame vs x; None when x is not a closed mesh) and
+    ``deformation_conformal_distortion`` (mean over frames).
+    """
+    frames = np.asarray(frames.detach().cpu().numpy() if hasattr(frames, "detach") else frames, dtype=np.float64)
+    verts_x = x.shape.verts.detach().cpu().numpy().astype(np.float64)
+    faces_x = x.shape.faces.detach().cpu().numpy()
+    verts_y = y.shape.verts.detach().cpu().numpy().astype(np.float64)
+    sqrt_area_y = float(np.sqrt(metrics.surface_area(verts_y, y.shape.faces.detach().cpu().numpy())))
+    last = frames[-1]
+    try:
+        volume = metrics.relative_volume_change(verts_x, faces_x, last)
+    except InvalidMeshError:
+        volume = None  # open or non-manifold source: the enclosed volume is undefined
+    return {
+        "chamfer": metrics.chamfer_distance(last, verts_y) / sqrt_area_y,
+        "chamfer_one_sided": metrics.chamfer_distance(last, verts_y, one_sided=True) / sqrt_area_y,
+        "volume_change": volume,
+        "deformation_conformal_distortion": float(
+            np.mean([metrics.mean_conformal_distortion(verts_x, faces_x, f, clamp) for f in frames])
+        ),
+    }
+
+
+# --------------------------------------------------------------------------------------------------------
+# Records on disk
+# --------------------------------------------------------------------------------------------------------
+def record_paths(out_dir: str | os.PathLike, source: str, target: str) -> tuple[Path, Path]:
+    """``(json, npz)`` paths of a pair's record."""
+    folder, stem = Path(out_dir) / RECORDS_DIR, pair_name(source, target)
+    return folder / f"{stem}.json", folder / f"{stem}.npz"
+
+
+def is_done(out_dir: str | os.PathLike, source: str, target: str) -> bool:
+    """True when the pair's record and errors exist (it is skipped on re-run)."""
+    js, npz = record_paths(out_dir, source, target)
+    return js.is_file() and npz.is_file()
+
+
+def write_record(out_dir: str | os.PathLike, record: PairRecord, errors: np.ndarray, errors_sym: np.ndarray | None) -> None:
+    """Write a pair's errors then its record (atomic files; the record marks the pair as done)."""
+    js, npz = record_paths(out_dir, record.source, record.target)
+    js.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {"errors": np.asarray(errors, dtype=np.float32)}
+    if errors_sym is not None:
+        arrays["errors_sym"] = np.asarray(errors_sym, dtype=np.float32)
+    with atomic_open(npz) as fh:
+        np.savez(fh, **arrays)
+    with atomic_open(js) as fh:
+        fh.write(json.dumps(asdict(record), indent=1).encode())
+
+
+def load_record(out_dir: str | os.PathLike, source: str, target: str) -> tuple[PairRecord, np.ndarray, np.ndarray | None]:
+    """Read back ``(record, errors, errors_sym)`` of a done pair."""
+    js, npz = record_paths(out_dir, source, target)
+    try:
+        record = PairRecord.from_dict(json.loads(js.read_text()))
+        with np.load(npz, allow_pickle=False) as data:
+            errors = data["errors"].astype(np.float64)
+            errors_sym = data["errors_sym"].astype(np.float64) if "errors_sym" in data.files else None
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise CorrespondenceError(f"unreadable evaluation record ({err}); delete it to recompute the pair", js) from None
+    return record, errors, errors_sym
+
+
+# --------------------------------------------------------------------------------------------------------
+# Running pairs
+# --------------------------------------------------------------------------------------------------------
+class _LRU:
+    """A small least-recently-used cache of ``key -> value`` computed by a function."""
+
+    def __init__(self, compute, size: int):
+        self.compute, self.size, self.items = compute, size, OrderedDict()
+
+    def __call__(self, key):
+        if key in self.items:
+            self.items.move_to_end(key)
+            return self.items[key]
+        value = self.compute(key)
+        self.items[key] = value
+        while len(self.items) > self.size:
+            self.items.popitem(last=False)
+        return value
+
+
+def _synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+class PairEvaluator:
+    """Evaluates pairs (i, j) of a ShapeDataset with one matcher and writes their outputs to ``out_dir``.
+
+    Parameters
+    ----------
+    shapes : ShapeDataset
+    matcher : Matcher
+    out_dir : path
+    settings : EvalSettings
+    """
+
+    def __init__(self, shapes, matcher, out_dir: str | os.PathLike, settings: EvalSettings = EvalSettings()):
+        self.shapes, self.matcher, self.out_dir, self.settings = shapes, matcher, Path(out_dir), settings
+        self.device = torch.device(settings.device)
+        self.sample = _LRU(lambda i: shapes[i], settings.sample_cache)
+        self.geodesics = _LRU(lambda j: shapes.geodesics(j, method=settings.geodesics), settings.geodesic_cache)
+
+    def __call__(self, i: int, j: int) -> PairRecord:
+        start = time.perf_counter()
+        x, y = self.sample(i), self.sample(j)
+        name = pair_name(x.name, y.name)
+        t0 = time.perf_counter()
+        xd, yd = x.to(self.device), y.to(self.device)
+        with torch.no_grad():
+            result = self.matcher.match(xd, yd)
+        _synchronize(self.device)
+        seconds = time.perf_counter() - t0
+        if result is None or not hasattr(result, "p2p"):
+            raise ConfigError(f"{type(self.matcher).__name__}.match returned {type(result).__name__}, not a MatchResult")
+        result = result.cpu().validate(x.shape.n_verts, y.shape.n_verts, name)
+        scores = score_map(result.p2p, x, y, self.geodesics(j), self.settings.conformal_clamp)
+        extra: dict[str, float | None] = {}
+        if result.deformation is not None:
+            extra = score_deformation(result.deformation, x, y, self.settings.conformal_clamp)
+            if self.settings.write_sequences:
+                write_sequence(self.out_dir, x.name, y.name, result.deformation, x.shape.faces, shape=x.shape)
+        if self.settings.write_maps:
+            write_map_files(self.out_dir, x.name, y.name, result.p2p)
+        errors, errors_sym = scores["errors"], scores["errors_sym"]
+        record = PairRecord(
+            source=x.name,
+            target=y.name,
+            mean_error=float(errors.mean()),
+            median_error=float(np.median(errors)),
+            n_points=int(errors.shape[0]),
+            seconds=seconds,
+            eval_seconds=0.0,
+            conformal_distortion=float(scores["conformal_distortion"]),
+            mean_error_sym=None if errors_sym is None else float(errors_sym.mean()),
+            **extra,
+        )
+        record.eval_seconds = time.perf_counter() - start - seconds
+        write_record(self.out_dir, record, errors, errors_sym)
+        return record
+
+
+_WORKER: PairEvaluator | None = None
+
+
+def _init_worker(shapes, matcher, out_dir, settings, threads: int) -> None:
+    global _WORKER
+    torch.set_num_threads(threads)
+    _WORKER = PairEvaluator(shapes, matcher, out_dir, settings)
+
+
+def _run_in_worker(i: int, j: int) -> PairRecord:
+    assert _WORKER is not None, "worker not initialized"
+    return _WORKER(i, j)
+
+
+def evaluate_pairs(
+    matcher,
+    shapes,
+    pairs: Sequence[tuple[int, int]],
+    out_dir: str | os.PathLike,
+    settings: EvalSettings = EvalSettings(),
+    workers: int = 0,
+    start_method: str = "spawn",
+    progress: bool = True,
+) -> list[PairRecord]:
+    """Evaluate ordered pairs of ``shapes`` (skipping pairs already done) and return all their records.
+
+    Parameters
+    ----------
+    matcher : Matcher
+    shapes : ShapeDataset
+    pairs : list of (i, j)
+        Indices into ``shapes``; the map goes from i to j.
+    out_dir : path
+    settings : EvalSettings
+    workers : int
+        CPU worker processes; 0 runs in this process (required for a matcher on a GPU).
+    start_method : {"spawn", "forkserver", "fork"}
+        How worker processes start (spawn is safe with threaded libraries; fork starts faster on Linux).
+    progress : bool
+        Show a progress bar.
+
+    Returns
+    -------
+    list of PairRecord, in the order of ``pairs``
+    """
+    if start_method not in START_METHODS:
+        raise ConfigError(f"start_method must be one of {START_METHODS}, got {start_method!r}")
+    if workers < 0:
+        raise ConfigError(f"workers must be >= 0, got {workers}")
+    if workers > 0 and torch.device(settings.device).type != "cpu":
+        raise ConfigError(f"parallel workers evaluate on the CPU only; use workers=0 with device={settings.device}")
+    names = [(shapes.names[i], shapes.names[j]) for i, j in pairs]
+    todo = [p for p, (a, b) in zip(pairs, names) if not is_done(out_dir, a, b)]
+    # Grouping by target lets each process reuse the target's geodesic matrix across consecutive pairs.
+    todo.sort(key=lambda p: (p[1], p[0]))
+    bar = tqdm(total=len(pairs), initial=len(pairs) - len(todo), desc="evaluating", unit="pair", disable=not progress)
+    try:
+        if workers == 0 or len(todo) <= 1:
+            evaluator = PairEvaluator(shapes, matcher, out_dir, settings)
+            for i, j in todo:
+                evaluator(i, j)
+                bar.update()
+        else:
+            threads = max(1, (os.cpu_count() or 1) // workers)
+            ctx = multiprocessing.get_context(start_method)
+            with ProcessPoolExecutor(
+                max_workers=min(workers, len(todo)),
+                mp_context=ctx,
+                initializer=_init_worker,
+                initargs=(shapes, matcher, str(out_dir), settings, threads),
+            ) as pool:
+                pending = {pool.submit(_run_in_worker, i, j) for i, j in todo}
+                while pending:
+                    done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+                    for future in done:
+                        if future.exception() is not None:
+                            for other in pending:
+                                other.cancel()
+                            raise future.exception()
+                        bar.update()
+    finally:
+        bar.close()
+    return [load_record(out_dir, a, b)[0] for a, b in names]
+
+
+# --------------------------------------------------------------------------------------------------------
+# DDP sharding
+# --------------------------------------------------------------------------------------------------------
+def distributed_context() -> tuple[int, int]:
+    """``(rank, world_size)``: from torch.distributed when initialized, else from the launcher's environment.
+
+    The environment fallback reads ``RANK`` (set by torchrun; ``LOCAL_RANK`` when only that is set) and
+    ``WORLD_SIZE``; without them the run is a single process ``(0, 1)``.
+    """
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    try:
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        rank = int(os.environ.get("RANK", os.environ.get("LOCAL_RANK", "0")))
+    except ValueError as err:
+        raise ConfigError(f"RANK / LOCAL_RANK / WORLD_SIZE must be integers: {err}") from None
+    if world < 1 or not 0 <= rank < world:
+        raise ConfigError(f"invalid distributed setting: rank {rank} of world size {world}")
+    return rank, world
+
+
+def shard_pairs(pairs: Sequence[Any], rank: int, world_size: int) -> list[Any]:
+    """The pairs a rank evaluates: every ``world_size``-th pair starting at ``rank``.
+
+    The shards are disjoint, cover every pair, keep the input order, and differ in size by at most one.
+    """
+    if world_size < 1 or not 0 <= rank < world_size:
+        raise ConfigError(f"invalid shard: rank {rank} of world size {world_size}")
+    return list(pairs[rank::world_size])
+

@@ -1,0 +1,225 @@
+"""Evaluation reports: ``metrics.json``, ``per_pair.csv`` and ``pck.png``.
+
+Aggregation conventions (documented in ``metrics.json`` itself under ``"conventions"``):
+
+* ``mean_geodesic_error``: mean over pairs of the per-pair mean error (each pair weighs the same, the
+  Princeton convention; with the same number of reference points per pair it equals the pooled mean);
+* ``median_geodesic_error``, ``pck`` and ``pck_auc``: over all reference points of all pairs, pooled;
+* errors are fractions of sqrt(area of the target): multiply by 100 for the numbers papers print;
+* ``mean_geodesic_error_sym``: the same map scored against the mirrored ground truth, over the pairs whose
+  target has one; reported separately, never mixed into the main numbers;
+* ``seconds_per_pair``: mean wall time of the matcher per pair; ``eval_seconds_per_pair``: the evaluation's
+  own overhead per pair (loading, scoring, writing);
+* ``peak_memory_mb``: the largest resident set size of this process and of its worker processes
+  (``resource.getrusage``), and ``peak_cuda_memory_mb`` when a GPU was used.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import resource
+import sys
+from dataclasses import asdict, fields
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from shapecorr.data.cache import atomic_open
+from shapecorr.errors import CorrespondenceError
+from shapecorr.eval import metrics
+from shapecorr.eval.protocol import PairRecord
+from shapecorr.viz.render import save_figure
+
+#: Column order of per_pair.csv: the four columns of the issue first, then everything else a record holds.
+PER_PAIR_COLUMNS = ["source", "target", "mean_error", "seconds"] + [
+    f.name for f in fields(PairRecord) if f.name not in ("source", "target", "mean_error", "seconds")
+]
+#: Size of the PCK figure in inches and its resolution.
+PCK_FIGSIZE = (5.0, 4.0)
+PCK_DPI = 120
+_KIB_PER_MIB = 1024.0
+
+
+def peak_memory_mb(include_cuda: bool = True) -> dict[str, float]:
+    """Peak memory of this process and of its (finished) child processes, in MiB.
+
+    Returns
+    -------
+    dict with ``peak_memory_mb`` (max over this process and its children's largest), ``peak_memory_self_mb``,
+    ``peak_memory_children_mb`` and, when CUDA was initialized, ``peak_cuda_memory_mb``.
+    """
+    # ru_maxrss is in KiB on Linux and in bytes on macOS.
+    unit = 1.0 / (_KIB_PER_MIB * _KIB_PER_MIB) if sys.platform == "darwin" else 1.0 / _KIB_PER_MIB
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * unit
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * unit
+    out = {"peak_memory_mb": max(own, children), "peak_memory_self_mb": own, "peak_memory_children_mb": children}
+    if include_cuda:
+        import torch
+
+        if torch.cuda.is_available() and torch.cuda.is_initialized():
+            out["peak_cuda_memory_mb"] = torch.cuda.max_memory_allocated() / (_KIB_PER_MIB * _KIB_PER_MIB)
+    return out
+
+
+def _mean_of(records: Sequence[PairRecord], attr: str) -> float | None:
+    values = [getattr(r, attr) for r in records if getattr(r, attr) is not None]
+    return float(np.mean(values)) if values else None
+
+
+def aggregate(
+    records: Sequence[PairRecord],
+    errors: Sequence[np.ndarray],
+    errors_sym: Sequence[np.ndarray | None] | None = None,
+    thresholds: np.ndarray | None = None,
+) -> dict[str, Any]:
+    """Dataset-level metrics from per-pair records and per-point errors (see the module docstring).
+
+    Parameters
+    ----------
+    records : list of PairRecord
+    errors : list of (R_k,) float
+        Per-reference-point errors of each pair.
+    errors_sym : list of (R_k,) float or None, optional
+        The same against the mirrored ground truth.
+    thresholds : (t,) float, optional
+        PCK thresholds (default 0..0.25).
+
+    Returns
+    -------
+    dict (JSON-serializable)
+    """
+    if not records:
+        raise CorrespondenceError("no evaluated pair to aggregate")
+    if len(errors) != len(records):
+        raise CorrespondenceError(f"{len(records)} records but {len(errors)} error arrays")
+    pooled = np.concatenate([np.asarray(e, dtype=np.float64) for e in errors])
+    t, frac = metrics.pck_curve(pooled, thresholds)
+    seconds = np.array([r.seconds for r in records])
+    out: dict[str, Any] = {
+        "n_pairs": len(records),
+        "n_points": int(pooled.size),
+        "mean_geodesic_error": float(np.mean([r.mean_error for r in records])),
+        "median_geodesic_error": float(np.median(pooled)),
+        "pck_auc": metrics.pck_auc(t, frac),
+        "mean_conformal_distortion": _mean_of(records, "conformal_distortion"),
+        "seconds_per_pair": float(seconds.mean()),
+        "median_seconds_per_pair": float(np.median(seconds)),
+        "eval_seconds_per_pair": float(np.mean([r.eval_seconds for r in records])),
+    }
+    sym = [(r, e) for r, e in zip(records, errors_sym or [None] * len(records)) if e is not None]
+    if sym:
+        pooled_sym = np.concatenate([np.asarray(e, dtype=np.float64) for _, e in sym])
+        ts, fs = metrics.pck_curve(pooled_sym, thresholds)
+        out["mean_geodesic_error_sym"] = float(np.mean([r.mean_error_sym for r, _ in sym]))
+        out["pck_auc_sym"] = metrics.pck_auc(ts, fs)
+        out["n_pairs_sym"] = len(sym)
+        out["pck_sym"] = {"thresholds": ts.tolist(), "fractions": fs.tolist()}
+    for attr in ("chamfer", "chamfer_one_sided", "volume_change", "deformation_conformal_distortion"):
+        value = _mean_of(records, attr)
+        if value is not None:
+            out[f"mean_{attr}"] = value
+    out["pck"] = {"thresholds": t.tolist(), "fractions": frac.tolist()}
+    out["conventions"] = {
+        "errors": "geodesic distance on the target / sqrt(area of the target); x100 for paper numbers",
+        "mean_geodesic_error": "mean over pairs of the per-pair mean",
+        "median_geodesic_error": "median over all reference points of all pairs",
+        "pck_auc": "trapezoid area under the pooled PCK curve divided by the threshold range",
+        "mean_conformal_distortion": "area-weighted (K - 1/K)^2 per source triangle, clamped, mean over pairs",
+    }
+    return out
+
+
+def write_metrics_json(path: str | os.PathLike, metrics_dict: Mapping[str, Any]) -> Path:
+    """Write ``metrics.json`` atomically (sorted keys, indented)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_open(path) as fh:
+        fh.write((json.dumps(metrics_dict, indent=2, sort_keys=True) + "\n").encode())
+    return path
+
+
+def write_per_pair_csv(path: str | os.PathLike, records: Sequence[PairRecord]) -> Path:
+    """Write ``per_pair.csv``: one row per pair, columns :data:`PER_PAIR_COLUMNS` (empty cell = not applicable)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=PER_PAIR_COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    for r in records:
+        row = asdict(r)
+        writer.writerow({k: "" if row[k] is None else row[k] for k in PER_PAIR_COLUMNS})
+    with atomic_open(path) as fh:
+        fh.write(text.getvalue().encode())
+    return path
+
+
+def read_per_pair_csv(path: str | os.PathLike) -> list[PairRecord]:
+    """Read ``per_pair.csv`` back into records (empty cells -> None)."""
+    path = Path(path)
+    types = {f.name: f.type for f in fields(PairRecord)}
+    records = []
+    with open(path, newline="") as fh:
+        for row in csv.DictReader(fh):
+            values: dict[str, Any] = {}
+            for key, text in row.items():
+                if key not in types:
+                    continue
+                if text == "":
+                    values[key] = None
+                elif key in ("source", "target"):
+                    values[key] = text
+                elif key == "n_points":
+                    values[key] = int(text)
+                else:
+                    values[key] = float(text)
+            records.append(PairRecord.from_dict(values))
+    return records
+
+
+def pck_figure(curves: Mapping[str, tuple[np.ndarray, np.ndarray, float]], title: str | None = None) -> Figure:
+    """A PCK figure (no pyplot: safe headless and in worker threads).
+
+    Parameters
+    ----------
+    curves : dict label -> (thresholds (t,), fractions (t,), mean error)
+        One line per entry; the legend shows the mean error and the AUC.
+    title : str, optional
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    fig = Figure(figsize=PCK_FIGSIZE, dpi=PCK_DPI)
+    ax = fig.add_subplot(1, 1, 1)
+    for label, (t, frac, mean) in curves.items():
+        auc = metrics.pck_auc(t, frac)
+        ax.plot(t, frac, label=f"{label}: mean {mean:.4f}, AUC {auc:.3f}")
+    ax.set_xlabel("geodesic error / sqrt(area)")
+    ax.set_ylabel("fraction of correspondences")
+    ax.set_ylim(0.0, 1.0)
+    ax.set_xlim(float(min(c[0][0] for c in curves.values())), float(max(c[0][-1] for c in curves.values())))
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="lower right", fontsize="small")
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    return fig
+
+
+def write_pck_png(path: str | os.PathLike, metrics_dict: Mapping[str, Any], label: str = "map") -> Path:
+    """Write ``pck.png`` from an :func:`aggregate` result (plus the symmetric curve when present)."""
+    pck = metrics_dict["pck"]
+    curves = {label: (np.asarray(pck["thresholds"]), np.asarray(pck["fractions"]), metrics_dict["mean_geodesic_error"])}
+    if "pck_sym" in metrics_dict:
+        sym = metrics_dict["pck_sym"]
+        curves[f"{label} vs mirrored GT"] = (
+            np.asarray(sym["thresholds"]),
+            np.asarray(sym["fractions"]),
+            metrics_dict["mean_geodesic_error_sym"],
+        )
+    return save_figure(pck_figure(curves, title=f"PCK over {metrics_dict['n_pairs']} pairs"), path)

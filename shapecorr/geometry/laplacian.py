@@ -1,0 +1,456 @@
+"""Cotangent Laplacian, lumped mass and the Laplace-Beltrami eigenbasis of a triangle mesh.
+
+Conventions
+-----------
+``laplacian`` returns the *stiffness* matrix ``L`` (symmetric positive semidefinite: positive diagonal,
+non-positive off-diagonal entries on Delaunay meshes, zero row sums) with the standard finite-element
+weights ``L_ij = -1/2 (cot a_ij + cot b_ij)`` (``-igl.cotmatrix``), and the barycentric lumped mass
+``m_i = 1/3 * sum of the areas of the faces around i`` (``igl.massmatrix`` BARYCENTRIC). The
+Laplace-Beltrami eigenpairs solve the generalized problem ``L phi = lambda M phi``, ``M = diag(m)``; on a
+unit sphere ``lambda_l = l (l + 1)``.
+
+Eigenvalue scale of the original code: the MATLAB preprocessing of Smooth Shells / Deep Shells / G-MSM
+builds its stiffness with the full ``cot a + cot b`` weight, so every eigenvalue stored in their ``.mat``
+files is exactly ``ORIGINAL_EIGENVALUE_FACTOR = 2`` times ours (methods-digest §0.3). Hyperparameters
+published in that scale (spectral filter scale 5e4, HKS times [0.002, 0.05]) need
+``ORIGINAL_EIGENVALUE_FACTOR * evals`` (or rescaled parameters) to mean the same thing here.
+
+``method="robust"`` uses the intrinsic-Delaunay Laplacian of the tufted cover (Sharp & Crane, "A Laplacian
+for Nonmanifold Triangle Meshes", SGP 2020) from ``robust_laplacian``: same sign and scale conventions, but
+well defined on non-manifold meshes, with slivers and zero-area faces, where the cotan weights are
+infinite or badly negative. Its mass is the lumped mass of the intrinsic triangulation (also ~ area / 3).
+"""
+
+from __future__ import annotations
+
+import igl
+import numpy as np
+import robust_laplacian
+import scipy.linalg
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+from scipy.sparse.csgraph import connected_components
+
+from shapecorr.data.validation import check_mesh_arrays
+from shapecorr.errors import ConfigError, InvalidMeshError, NumericalError
+
+#: The original Smooth Shells / Deep Shells / G-MSM stiffness uses cot a + cot b (not 1/2 of it), so their
+#: eigenvalues are exactly this factor times ours (methods-digest §0.3).
+ORIGINAL_EIGENVALUE_FACTOR = 2.0
+
+#: Vertices whose lumped mass is below this are removed from the eigen solve (MATLAB preprocessing of
+#: Smooth Shells / Deep Shells, methods-digest §0.3). Absolute, in squared units of the input.
+DEFAULT_MIN_MASS = 1e-14
+
+#: Mollification of the tufted-cover Laplacian (robust_laplacian's default, Sharp & Crane 2020 §4.2).
+ROBUST_MOLLIFY_FACTOR = 1e-5
+
+LAPLACIAN_METHODS = ("cotan", "robust")
+
+# --- eigen solver settings (project choices, measured in benchmarks/geometry_speed.py) -------------------
+#: Relative shift of the first shift-invert solve: sigma = -EIGSH_SHIFT_REL * mean(diag(A)). Slightly below
+#: zero so that L - sigma M is positive definite while the zero eigenvalues stay the nearest ones (the
+#: MATLAB code used an absolute 1e-5 on area-0.44 shapes, ~1e-9 relative to the same quantity).
+EIGSH_SHIFT_REL = 1e-8
+#: ARPACK convergence tolerance (relative accuracy of the Ritz values of the inverted operator).
+EIGSH_TOL = 1e-10
+#: Eigenpairs computed per shift-invert solve ("spectral slice"). ARPACK's cost grows with the square of the
+#: number of requested pairs (its eigenvector extraction dseupd dominated: 12 s of 15 s for 500 pairs on a
+#: 5k-vertex mesh), so many pairs are computed as several slices at increasing shifts: 500 pairs take ~2 s.
+EIGSH_SLICE_SIZE = 100
+#: Fraction of each slice spent re-finding eigenvalues of the previous slice (guarantees no gap).
+EIGSH_SLICE_OVERLAP = 0.15
+#: Eigenvalues closer than this (relative to the largest one found) belong to one cluster (a multiple
+#: eigenvalue); clusters are never split between two slices.
+EIGSH_CLUSTER_RTOL = 1e-6
+#: Accepted residual ||A psi - lambda psi|| relative to mean(diag(A)) (a spectral-radius scale); a larger
+#: residual after the sliced solve triggers the single-solve fallback, after it a NumericalError.
+EIGSH_RESIDUAL_RTOL = 1e-7
+#: Up to this many vertices the eigenproblem is solved densely (LAPACK), which is faster there and exact.
+DENSE_MAX_N = 1000
+#: ... and also when more than this fraction of the spectrum is requested.
+DENSE_MAX_K_FRACTION = 0.3
+#: Eigenvalues at most this (relative to mean(diag(A))) count as zero (the constants of each component).
+ZERO_EVAL_RTOL = 1e-9
+#: Largest accepted negative eigenvalue (relative to mean(diag(A))) before clipping at zero.
+NEGATIVE_EVAL_RTOL = 1e-9
+#: Eigenvectors are re-orthonormalized when max |Phi^T M Phi - I| exceeds this.
+ORTHONORMALITY_TOL = 1e-9
+#: Sign rule: the skewness sum(m phi^3) decides unless it is below this fraction of sum(m |phi|^3).
+SIGN_SKEW_RTOL = 1e-6
+#: Seed of the ARPACK start vector (a fixed start vector makes the solve deterministic).
+EIGSH_SEED = 0
+
+
+def _as_numpy(x) -> np.ndarray:
+    """numpy view of an array or of a CPU torch tensor (detached)."""
+    if hasattr(x, "detach"):
+        x = x.detach().cpu()
+    return np.asarray(x)
+
+
+def mesh_arrays(verts, faces) -> tuple[np.ndarray, np.ndarray]:
+    """Validated float64 vertices and int64 faces from numpy arrays or CPU torch tensors.
+
+    Parameters
+    ----------
+    verts : (n, 3) float
+    faces : (f, 3) int
+
+    Returns
+    -------
+    verts : (n, 3) float64
+    faces : (f, 3) int64
+
+    Raises
+    ------
+    InvalidMeshError
+        Wrong shapes or dtypes, NaN/Inf coordinates, face indices out of range.
+    """
+    v, f = check_mesh_arrays(_as_numpy(verts), _as_numpy(faces))
+    return np.ascontiguousarray(v, dtype=np.float64), np.ascontiguousarray(f, dtype=np.int64)
+
+
+def laplacian(verts, faces, method: str = "cotan") -> tuple[sp.csr_matrix, np.ndarray]:
+    """Cotangent stiffness matrix and lumped mass of a triangle mesh.
+
+    Parameters
+    ----------
+    verts : (n, 3) float
+        Vertex positions (numpy array or CPU torch tensor).
+    faces : (f, 3) int
+        Zero-based triangles.
+    method : {"cotan", "robust"}
+        ``"cotan"``: ``L = -igl.cotmatrix`` (weights 1/2 (cot a + cot b)) and the barycentric lumped mass;
+        needs a mesh without zero-area faces. ``"robust"``: the tufted-cover intrinsic-Delaunay Laplacian of
+        ``robust_laplacian.mesh_laplacian`` (non-manifold and degenerate meshes).
+
+    Returns
+    -------
+    L : (n, n) scipy.sparse.csr_matrix float64
+        Symmetric positive semidefinite stiffness, zero row sums.
+    mass : (n,) float64
+        Lumped vertex areas (zero for a vertex in no face).
+
+    Raises
+    ------
+    InvalidMeshError
+        Invalid arrays, or (cotan) infinite weights from zero-area faces.
+    ConfigError
+        Unknown method.
+    """
+    v, f = mesh_arrays(verts, faces)
+    n = v.shape[0]
+    if method == "cotan":
+        L = sp.csr_matrix(-igl.cotmatrix(v, f), dtype=np.float64)
+        # igl sizes the mass matrix by the largest referenced index: pad for trailing unreferenced vertices.
+        diag = igl.massmatrix(v, f, igl.MASSMATRIX_TYPE_BARYCENTRIC).diagonal()
+        mass = np.zeros(n)
+        mass[: diag.shape[0]] = diag
+        if not np.isfinite(L.data).all():
+            bad = np.unique(L.nonzero()[0][~np.isfinite(L.data)])
+            raise InvalidMeshError(
+                f"cotangent Laplacian has infinite weights around {len(bad)} vertices (first {bad[:5].tolist()}): "
+                "the mesh has zero-area faces; use method='robust' or clean the mesh"
+            )
+    elif method == "robust":
+        L_r, M_r = robust_laplacian.mesh_laplacian(v, f, mollify_factor=ROBUST_MOLLIFY_FACTOR)
+        L = sp.csr_matrix(L_r, dtype=np.float64)
+        mass = np.asarray(M_r.diagonal(), dtype=np.float64)
+    else:
+        raise ConfigError(f"laplacian method must be one of {LAPLACIAN_METHODS}, got {method!r}")
+    # Exact symmetry (the libraries assemble both triangles in the same order, this only removes round-off).
+    L = sp.csr_matrix(0.5 * (L + L.T))
+    if not (np.isfinite(L.data).all() and np.isfinite(mass).all()):
+        raise NumericalError(f"{method} Laplacian or mass contains NaN/Inf")
+    return L, mass
+
+
+def eigenbasis(
+    verts, faces, k: int, method: str = "cotan", min_mass: float = DEFAULT_MIN_MASS
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ``k`` lowest Laplace-Beltrami eigenpairs: ``L phi = lambda M phi``.
+
+    Solved in float64: ``A = M^-1/2 L M^-1/2`` (M is diagonal) with shift-invert ARPACK
+    (``scipy.sparse.linalg.eigsh``) around a shift slightly below zero, using a sparse LU of
+    ``A - sigma I``; many pairs are computed as several shift-invert "slices" at increasing shifts (much
+    faster than one ARPACK run, see ``EIGSH_SLICE_SIZE``), small problems densely with LAPACK. The sliced
+    result is checked (residuals) and falls back to a single ARPACK run if the check fails.
+
+    Parameters
+    ----------
+    verts : (n, 3) float
+    faces : (f, 3) int
+    k : int
+        Number of eigenpairs, ``1 <= k <= n_kept - 1`` (``n_kept``: vertices with ``mass >= min_mass``).
+    method : {"cotan", "robust"}
+        Laplacian, see :func:`laplacian`.
+    min_mass : float
+        Vertices with a smaller lumped mass (unreferenced vertices, vertices of collapsed faces) are removed
+        from the solve together with their edges (the diagonal is recomputed so that rows still sum to zero).
+
+    Returns
+    -------
+    evals : (k,) float64
+        Ascending, ``>= 0`` (round-off negatives clipped). The standard 1/2-cot scale: multiply by
+        ``ORIGINAL_EIGENVALUE_FACTOR`` for the original Smooth/Deep Shells scale.
+    evecs : (n, k) float64
+        ``evecs.T @ diag(mass) @ evecs = I`` (re-orthonormalized if the solver drifted). Determinism:
+
+        - *components*: a mesh with ``c`` connected components has ``c`` zero eigenvalues; they are returned
+          as exact zeros with the eigenvectors ``1_C / sqrt(area(C))`` (indicator of component C), ordered
+          by decreasing component area, ties by smallest vertex index;
+        - *signs* of the other eigenvectors: ``sum_i m_i phi_i^3 > 0`` (positive mass-weighted skewness);
+          when that sum is below ``SIGN_SKEW_RTOL * sum_i m_i |phi_i|^3`` (an odd function of a symmetric
+          shape), the entry of largest magnitude is made positive instead. The rule only uses intrinsic
+          quantities, so it commutes with a vertex permutation. Eigenvectors of a multiple eigenvalue are an
+          arbitrary (deterministic for a given mesh) basis of their eigenspace;
+        - *removed vertices* (``mass < min_mass``) get the mean of the rows of their kept one-ring neighbours,
+          or, without any kept neighbour, the mean row over all kept vertices (the MATLAB rule).
+    mass : (n,) float64
+        Lumped vertex areas of all vertices (removed ones included).
+
+    Raises
+    ------
+    ConfigError
+        ``k < 1`` or ``k > n_kept - 1``.
+    InvalidMeshError
+        See :func:`laplacian`.
+    NumericalError
+        The solver did not converge, the operator is not positive semidefinite, or NaN/Inf appeared.
+    """
+    v, f = mesh_arrays(verts, faces)
+    n = v.shape[0]
+    L, mass = laplacian(v, f, method)
+    keep = mass >= min_mass
+    n_kept = int(keep.sum())
+    if not (1 <= k <= n_kept - 1):
+        raise ConfigError(
+            f"eigenbasis needs 1 <= k <= n-1 = {n_kept - 1} (vertices with mass >= {min_mass:g}: {n_kept} of {n}), "
+            f"got k={k}"
+        )
+    kept = np.flatnonzero(keep)
+    L_k = sp.csr_matrix(L[kept][:, kept])
+    if n_kept < n:
+        # Drop the edges to removed vertices: recompute the diagonal so that constants stay in the kernel.
+        off = L_k - sp.diags(L_k.diagonal())
+        L_k = sp.csr_matrix(off - sp.diags(np.asarray(off.sum(axis=1)).ravel()))
+    m_k = mass[kept]
+    inv_sqrt = 1.0 / np.sqrt(m_k)
+    A = sp.diags(inv_sqrt) @ L_k @ sp.diags(inv_sqrt)
+    A = sp.csc_matrix(0.5 * (A + A.T))
+    scale = float(np.mean(A.diagonal()))
+    if not scale > 0:
+        raise InvalidMeshError("Laplacian has no positive diagonal entry (no edge with a nonzero weight)")
+
+    evals, psi = _lowest_eigenpairs(A, k, scale)
+    if evals[0] < -NEGATIVE_EVAL_RTOL * scale:
+        raise NumericalError(
+            f"{method} Laplacian is not positive semidefinite (eigenvalue {evals[0]:.3g}); "
+            "try method='robust'"
+        )
+    evals = np.maximum(evals, 0.0)
+    phi = inv_sqrt[:, None] * psi
+
+    n_zero = _set_component_indicators(L_k, m_k, evals, phi, scale)
+    phi = _m_orthonormalize(phi, m_k)
+    _fix_signs(phi[:, n_zero:], m_k)
+
+    evecs = np.empty((n, k))
+    evecs[kept] = phi
+    if n_kept < n:
+        evecs[~keep] = _removed_rows(f, keep, evecs)
+    if not (np.isfinite(evals).all() and np.isfinite(evecs).all()):
+        raise NumericalError("eigenbasis produced NaN/Inf values")
+    return evals, evecs, mass
+
+
+def _lowest_eigenpairs(
+    A: sp.csc_matrix,
+    k: int,
+    scale: float | None = None,
+    slice_size: int = EIGSH_SLICE_SIZE,
+    tol: float = EIGSH_TOL,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` smallest eigenpairs of a symmetric positive semidefinite sparse matrix.
+
+    Parameters
+    ----------
+    A : (n, n) sparse float64, symmetric PSD
+    k : int, ``k <= n - 1``
+    scale : float
+        A spectral scale (mean diagonal); computed when None.
+    slice_size : int
+        Pairs per shift-invert solve, see ``EIGSH_SLICE_SIZE``.
+
+    Returns
+    -------
+    evals : (k,) float64, ascending
+    evecs : (n, k) float64, orthonormal columns
+    """
+    n = A.shape[0]
+    if scale is None:
+        scale = float(np.mean(A.diagonal()))
+    if n <= DENSE_MAX_N or k > DENSE_MAX_K_FRACTION * n:
+        evals, evecs = scipy.linalg.eigh(A.toarray(), subset_by_index=[0, k - 1])
+        return evals, evecs
+    v0 = np.random.default_rng(EIGSH_SEED).standard_normal(n)
+    try:
+        evals, evecs = _sliced_eigsh(A, k, scale, slice_size, tol, v0)
+        if _max_residual(A, evals, evecs) <= EIGSH_RESIDUAL_RTOL * scale:
+            return evals, evecs
+    except (_SliceGap, sla.ArpackNoConvergence, RuntimeError):
+        pass
+    # Fallback: one shift-invert run for all pairs (slow for large k, but no slicing logic involved).
+    try:
+        evals, evecs = _shift_invert(A, -EIGSH_SHIFT_REL * scale, k, tol, v0)
+    except sla.ArpackNoConvergence as err:
+        raise NumericalError(f"eigsh did not converge for {k} eigenpairs: {err}") from err
+    residual = _max_residual(A, evals, evecs)
+    if not residual <= EIGSH_RESIDUAL_RTOL * scale * 1e3:
+        raise NumericalError(f"eigen solve is inaccurate: residual {residual:.3g} (scale {scale:.3g})")
+    return evals, evecs
+
+
+class _SliceGap(Exception):
+    """A spectral slice did not reach down to the previous slice (a gap could hide eigenvalues)."""
+
+
+def _shift_invert(A, sigma: float, m: int, tol: float, v0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The ``m`` eigenpairs of ``A`` nearest to ``sigma``, ascending, via a sparse LU of ``A - sigma I``."""
+    n = A.shape[0]
+    # Symmetric fill-reducing ordering with threshold pivoting: 10-20% less fill than partial pivoting,
+    # stable for these diagonally dominant-ish shifted Laplacians (the residual check guards it).
+    lu = sla.splu(
+        sp.csc_matrix(A - sigma * sp.eye(n, format="csc")),
+        permc_spec="MMD_AT_PLUS_A",
+        diag_pivot_thresh=0.1,
+        options={"SymmetricMode": True},
+    )
+    op = sla.LinearOperator((n, n), matvec=lu.solve, dtype=np.float64)
+    evals, evecs = sla.eigsh(A, k=m, sigma=sigma, OPinv=op, tol=tol, ncv=min(n, 2 * m + 1), v0=v0)
+    order = np.argsort(evals)
+    return evals[order], evecs[:, order]
+
+
+def _trusted_count(evals: np.ndarray) -> int:
+    """Number of leading eigenvalues that precede the last cluster (so the cluster is not split)."""
+    gaps = np.flatnonzero(np.diff(evals) > EIGSH_CLUSTER_RTOL * max(abs(evals[-1]), 1e-300))
+    return int(gaps[-1]) + 1 if gaps.size else 0
+
+
+def _sliced_eigsh(A, k: int, scale: float, slice_size: int, tol: float, v0) -> tuple[np.ndarray, np.ndarray]:
+    """Lowest ``k`` eigenpairs by consecutive shift-invert slices (spectrum slicing).
+
+    Slice 0 takes the lowest pairs at a shift just below 0. Each next slice is centred so that its nearest
+    eigenvalues reach back below ``b``, the boundary (a gap midpoint) up to which everything is known: the
+    ``m`` eigenvalues nearest to a shift are all eigenvalues within some radius, so if the lowest one found
+    is below ``b``, nothing between ``b`` and the new boundary is missed. Only eigenvalues above ``b``
+    are taken from the new slice and the last cluster of each slice is left to the next one, so a multiple
+    eigenvalue is never split. The density of eigenvalues (almost constant on a surface, Weyl's law)
+    places the next shift.
+    """
+    n = A.shape[0]
+    first = min(k, slice_size)
+    evals, evecs = _shift_invert(A, -EIGSH_SHIFT_REL * scale, first, tol, v0)
+    if first == k:
+        return evals, evecs
+    top = _trusted_count(evals)
+    if top == 0:
+        raise _SliceGap("first slice is a single cluster")
+    bound = 0.5 * (evals[top - 1] + evals[top])
+    vals, vecs = [evals[:top]], [evecs[:, :top]]
+    count = top
+    density = top / max(bound, 1e-300)
+    while count < k:
+        need = k - count
+        overlap = int(np.ceil(EIGSH_SLICE_OVERLAP * slice_size))
+        # Take the rest in one slice when it is at most 1.5 slices, else one full slice.
+        m = need + overlap + 2 if need + overlap + 2 <= 1.5 * slice_size else slice_size
+        m = min(m, n - 1)
+        sigma = bound + (0.5 * m - overlap) / density
+        evals, evecs = _shift_invert(A, sigma, m, tol, v0)
+        if not evals[0] < bound:
+            raise _SliceGap(f"slice at {sigma:.4g} starts above the boundary {bound:.4g}")
+        top = _trusted_count(evals) if count + m < n else m
+        new = np.flatnonzero(evals >= bound)
+        new = new[new < top]
+        if new.size == 0:
+            raise _SliceGap("slice added no eigenvalue")
+        vals.append(evals[new])
+        vecs.append(evecs[:, new])
+        count += new.size
+        new_bound = 0.5 * (evals[top - 1] + evals[top]) if top < m else evals[-1]
+        density = new.size / max(new_bound - bound, 1e-300)
+        bound = new_bound
+    return np.concatenate(vals)[:k], np.concatenate(vecs, axis=1)[:, :k]
+
+
+def _max_residual(A, evals: np.ndarray, evecs: np.ndarray) -> float:
+    """max_j ||A psi_j - lambda_j psi_j||_2."""
+    r = A @ evecs - evecs * evals[None, :]
+    return float(np.sqrt((r * r).sum(axis=0)).max())
+
+
+def _set_component_indicators(L_k, m_k: np.ndarray, evals: np.ndarray, phi: np.ndarray, scale: float) -> int:
+    """Replace the kernel eigenvectors by normalized component indicators (in place); return their count."""
+    off = sp.csr_matrix(L_k - sp.diags(L_k.diagonal()))
+    off.eliminate_zeros()
+    n_comp, labels = connected_components(off, directed=False)
+    n_zero = min(n_comp, evals.shape[0])
+    if evals[n_zero - 1] > ZERO_EVAL_RTOL * scale:
+        raise NumericalError(
+            f"expected {n_comp} zero eigenvalues (one per connected component), got eigenvalue "
+            f"{evals[n_zero - 1]:.3g} at index {n_zero - 1}"
+        )
+    areas = np.bincount(labels, weights=m_k, minlength=n_comp)
+    first_vertex = np.full(n_comp, labels.shape[0])
+    np.minimum.at(first_vertex, labels, np.arange(labels.shape[0]))
+    order = np.lexsort((first_vertex, -areas))[:n_zero]
+    for j, comp in enumerate(order):
+        phi[:, j] = (labels == comp) / np.sqrt(areas[comp])
+    evals[:n_zero] = 0.0
+    return n_zero
+
+
+def _m_orthonormalize(phi: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Return ``phi`` made ``diag(m)``-orthonormal (Cholesky of the Gram matrix) if it drifted."""
+    gram = phi.T @ (m[:, None] * phi)
+    if np.abs(gram - np.eye(gram.shape[0])).max() <= ORTHONORMALITY_TOL:
+        return phi
+    try:
+        R = scipy.linalg.cholesky(gram, lower=False)
+    except np.linalg.LinAlgError as err:
+        raise NumericalError("eigenvectors are linearly dependent; the eigen solve failed") from err
+    # phi R^-1: a triangular correction that leaves each column's leading part (and its sign) unchanged.
+    return scipy.linalg.solve_triangular(R, phi.T, trans="T", lower=False).T
+
+
+def _fix_signs(phi: np.ndarray, m: np.ndarray) -> None:
+    """Flip the columns of ``phi`` in place by the documented sign rule (see :func:`eigenbasis`)."""
+    if phi.shape[1] == 0:
+        return
+    cube = phi**3
+    skew = m @ cube
+    magnitude = m @ np.abs(cube)
+    largest = phi[np.abs(phi).argmax(axis=0), np.arange(phi.shape[1])]
+    sign = np.where(np.abs(skew) > SIGN_SKEW_RTOL * magnitude, np.sign(skew), np.sign(largest))
+    sign[sign == 0] = 1.0
+    phi *= sign[None, :]
+
+
+def _removed_rows(faces: np.ndarray, keep: np.ndarray, evecs: np.ndarray) -> np.ndarray:
+    """Rows for removed vertices: mean of their kept one-ring neighbours' rows, else the mean kept row."""
+    n = keep.shape[0]
+    i = faces[:, [0, 0, 1, 1, 2, 2]].ravel()
+    j = faces[:, [1, 2, 0, 2, 0, 1]].ravel()
+    adj = sp.csr_matrix((np.ones(i.shape[0]), (i, j)), shape=(n, n))
+    adj.data[:] = 1.0  # duplicates summed by the constructor: back to a 0/1 pattern
+    removed = np.flatnonzero(~keep)
+    to_kept = adj[removed][:, np.flatnonzero(keep)]
+    counts = np.asarray(to_kept.sum(axis=1)).ravel()
+    rows = to_kept @ evecs[keep]
+    has = counts > 0
+    rows[has] /= counts[has, None]
+    rows[~has] = evecs[keep].mean(axis=0)
+    return rows

@@ -1,0 +1,205 @@
+"""Matchers that need no training: the evaluation's self-check, a descriptor baseline, and maps from files.
+
+All three implement the matcher protocol of :mod:`shapecorr.matching.result` and are usable as
+``evaluate.py model=identity_gt|descriptor_nn`` (``PrecomputedMaps`` backs ``evaluate.py maps_dir=DIR``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from shapecorr.errors import ConfigError, CorrespondenceError, NumericalError
+from shapecorr.eval.metrics import ground_truth_indices
+from shapecorr.matching.result import MatchResult
+
+#: Descriptors DescriptorNN can use (computed by the data pipeline, shapecorr.data.operators).
+DESCRIPTOR_NAMES = ("wks", "hks", "shot")
+#: Row normalizations of DescriptorNN: none, unit L2 rows, or per-channel standardization over both shapes.
+DESCRIPTOR_NORMALIZATIONS = ("none", "l2", "standardize")
+#: Rows of x processed at once by the brute-force nearest-neighbour search (bounds memory to chunk * n_y).
+NN_CHUNK_ROWS = 4096
+
+
+class IdentityGT:
+    """Maps x to y through the ground truth: the pipeline's self-check (its geodesic error must be 0).
+
+    Reference point r of x (``x.corres[r]``) goes to ``y.corres[r]``; every other vertex of x goes where its
+    Euclidean-nearest reference vertex of x goes. Without ``.vts`` files on either shape, shapes sharing
+    their connectivity map by the identity.
+
+    The error is exactly 0 whenever the ground truth is a function of x's vertices. If two reference points
+    fall on the same vertex of x but on different vertices of y (a ``.vts`` file that is not injective, as in
+    FAUST_r, where 5000 template points land on ~3500 distinct vertices), no vertex map can satisfy both: the
+    first one listed wins and the remaining error is the ground-truth floor of the dataset.
+    """
+
+    needs_ground_truth = True
+    required_operators: dict = {}
+
+    def match(self, x, y) -> MatchResult:
+        """Ground-truth map x -> y (see the class docstring)."""
+        n_x, n_y = x.shape.n_verts, y.shape.n_verts
+        ref_x, ref_y = ground_truth_indices(
+            None if x.corres is None else x.corres.cpu().numpy(),
+            None if y.corres is None else y.corres.cpu().numpy(),
+            n_x,
+            n_y,
+            x.shape.faces.cpu().numpy(),
+            y.shape.faces.cpu().numpy(),
+        )
+        # First occurrence of each reference vertex of x decides its image.
+        uniq_x, first = np.unique(ref_x, return_index=True)
+        target_of_ref = ref_y[first]
+        verts_x = x.shape.verts.detach().cpu().numpy().astype(np.float64)
+        _, nearest = cKDTree(verts_x[uniq_x]).query(verts_x, k=1)
+        p2p = target_of_ref[nearest]
+        p2p[uniq_x] = target_of_ref  # exact on the reference vertices even with coincident positions
+        return MatchResult(p2p=torch.from_numpy(p2p.astype(np.int64)).to(x.shape.verts.device))
+
+
+def nearest_neighbors(source: torch.Tensor, target: torch.Tensor, chunk_rows: int = NN_CHUNK_ROWS) -> torch.Tensor:
+    """Index of the nearest target row (Euclidean) for each source row, by chunked brute force.
+
+    Parameters
+    ----------
+    source : (n, c) float tensor
+    target : (m, c) float tensor
+    chunk_rows : int
+        Source rows per chunk (memory ~ chunk_rows * m).
+
+    Returns
+    -------
+    (n,) int64 tensor on the device of ``source``
+    """
+    if source.shape[1] != target.shape[1]:
+        raise ConfigError(f"descriptor sizes differ: {source.shape[1]} vs {target.shape[1]} channels")
+    out = torch.empty(source.shape[0], dtype=torch.int64, device=source.device)
+    for start in range(0, source.shape[0], chunk_rows):
+        block = source[start : start + chunk_rows]
+        # ||a - b||^2 = |a|^2 - 2 a.b + |b|^2; the |a|^2 term does not change the argmin.
+        score = (target * target).sum(1)[None, :] - 2.0 * block @ target.T
+        out[start : start + chunk_rows] = score.argmin(dim=1)
+    return out
+
+
+class DescriptorNN:
+    """Nearest neighbour in descriptor space (WKS, HKS or SHOT), both directions.
+
+    Parameters
+    ----------
+    descriptor : {"wks", "hks", "shot"}
+        Which entry of ``ShapeSample.features`` to match; the data pipeline computes it
+        (``required_operators`` asks ``evaluate.py`` for it).
+    normalize : {"none", "l2", "standardize"}
+        Row transform before the search: none; unit L2 norm per vertex; or per-channel zero mean and unit
+        variance using the statistics of both shapes together (puts channels of very different magnitude,
+        e.g. WKS energies, on an equal footing).
+    chunk_rows : int
+        Rows per brute-force chunk.
+    """
+
+    needs_ground_truth = False
+
+    def __init__(self, descriptor: str = "wks", normalize: str = "standardize", chunk_rows: int = NN_CHUNK_ROWS):
+        if descriptor not in DESCRIPTOR_NAMES:
+            raise ConfigError(f"descriptor must be one of {DESCRIPTOR_NAMES}, got {descriptor!r}")
+        if normalize not in DESCRIPTOR_NORMALIZATIONS:
+            raise ConfigError(f"normalize must be one of {DESCRIPTOR_NORMALIZATIONS}, got {normalize!r}")
+        if chunk_rows < 1:
+            raise ConfigError(f"chunk_rows must be positive, got {chunk_rows}")
+        self.descriptor = descriptor
+        self.normalize = normalize
+        self.chunk_rows = int(chunk_rows)
+        self.required_operators = {"descriptors": [descriptor]}
+
+    def _features(self, sample) -> torch.Tensor:
+        feats = sample.features.get(self.descriptor)
+        if feats is None:
+            raise ConfigError(
+                f"shape {sample.name!r} has no {self.descriptor!r} descriptor; add it to data.operators.descriptors"
+            )
+        if feats.ndim != 2 or feats.shape[0] != sample.shape.n_verts:
+            raise ConfigError(
+                f"{self.descriptor} of {sample.name!r} has shape {tuple(feats.shape)}, expected ({sample.shape.n_verts}, c)"
+            )
+        if not torch.isfinite(feats).all():
+            raise NumericalError(f"the {self.descriptor} descriptor of {sample.name!r} contains NaN or infinite values")
+        return feats.to(torch.float32)
+
+    def _transform(self, fx: torch.Tensor, fy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.normalize == "l2":
+            tiny = torch.finfo(fx.dtype).tiny
+            return fx / fx.norm(dim=1, keepdim=True).clamp_min(tiny), fy / fy.norm(dim=1, keepdim=True).clamp_min(tiny)
+        if self.normalize == "standardize":
+            both = torch.cat([fx, fy], dim=0)
+            mean, std = both.mean(0), both.std(0)
+            # Constant channels carry no information: leave them at zero instead of dividing by zero.
+            std = torch.where(std > 0, std, torch.ones_like(std))
+            return (fx - mean) / std, (fy - mean) / std
+        return fx, fy
+
+    def match(self, x, y) -> MatchResult:
+        """Nearest-neighbour maps x -> y and y -> x in descriptor space."""
+        fx, fy = self._transform(self._features(x), self._features(y))
+        p2p = nearest_neighbors(fx, fy, self.chunk_rows)
+        p2p_inv = nearest_neighbors(fy, fx, self.chunk_rows)
+        return MatchResult(p2p=p2p, p2p_inv=p2p_inv)
+
+
+class PrecomputedMaps:
+    """Reads maps computed elsewhere: ``<maps_dir>/<x>__<y>.<extension>``, one target index per source vertex.
+
+    Parameters
+    ----------
+    maps_dir : path
+        Folder of map files.
+    one_based : bool
+        Indices start at 1 (``.map`` / ``.vts``-style files) instead of 0 (shapecorr's ``.txt``).
+    extension : str
+        File extension without the dot: ``txt`` / ``map`` / ``vts`` (text, one index per line) or ``npy``
+        (an integer array, always zero-based, as written by ``evaluate.py``).
+    """
+
+    needs_ground_truth = False
+    required_operators: dict = {}
+
+    def __init__(self, maps_dir: str | os.PathLike, one_based: bool = False, extension: str = "txt"):
+        self.maps_dir = Path(maps_dir)
+        if not self.maps_dir.is_dir():
+            raise CorrespondenceError("maps folder does not exist", self.maps_dir)
+        self.one_based = bool(one_based)
+        self.extension = extension.lstrip(".")
+
+    def path(self, name_x: str, name_y: str) -> Path:
+        """File holding the map of pair (x, y)."""
+        return self.maps_dir / f"{name_x}__{name_y}.{self.extension}"
+
+    def match(self, x, y) -> MatchResult:
+        """The stored map x -> y, checked against the vertex counts of both shapes."""
+        path = self.path(x.name, y.name)
+        n_x, n_y = x.shape.n_verts, y.shape.n_verts
+        if not path.is_file():
+            raise CorrespondenceError(f"no map file for pair ({x.name}, {y.name})", path)
+        if self.extension == "npy":
+            try:
+                p2p = np.load(path, allow_pickle=False)
+            except (OSError, ValueError) as err:
+                raise CorrespondenceError(f"unreadable .npy map: {err}", path) from None
+            if p2p.ndim != 1 or not np.issubdtype(p2p.dtype, np.integer):
+                raise CorrespondenceError(f"expected a 1-D integer array, got {p2p.dtype} of shape {p2p.shape}", path)
+            if p2p.shape[0] != n_x:
+                raise CorrespondenceError(f"the map has {p2p.shape[0]} entries but {x.name} has {n_x} vertices", path)
+            if p2p.size and (p2p.min() < 0 or p2p.max() >= n_y):
+                raise CorrespondenceError(
+                    f"map indices in [{p2p.min()}, {p2p.max()}] are outside 0..{n_y - 1} ({y.name} has {n_y} vertices)", path
+                )
+        else:
+            from shapecorr.data.io import read_map
+
+            p2p = read_map(path, one_based=self.one_based, n_source=n_x, n_target=n_y)
+        return MatchResult(p2p=torch.as_tensor(np.asarray(p2p, dtype=np.int64)))

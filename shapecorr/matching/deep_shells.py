@@ -1,0 +1,781 @@
+"""Deep Shells: the differentiable hierarchical matching layer and its test-time refinement.
+
+Eisenberger, Toker, Leal-Taixé, Cremers, "Deep Shells: Unsupervised Shape Correspondence with Optimal
+Transport", NeurIPS 2020 (methods-digest §2.3, §2.4). Pure functions on tensors; the LightningModule that
+wraps them lives in ``shapecorr.models``.
+
+Training layer (:func:`deep_shells_layer`), for a pair (X, Y) and features at sampled vertices:
+
+1. soft correspondences ``P (n_s, m_s)``, ``P_adj (m_s, n_s)`` = Sinkhorn of the feature distances;
+2. for each shell size ``k`` of the schedule (coarse to fine):
+
+   a. smooth shells ``X_k``, ``Y_k`` (low-pass reconstructions of the coordinates, :mod:`shapecorr.geometry.shells`);
+   b. closed-form fit, from the current soft correspondences, of a functional map ``C (k, k)`` and a spectral
+      deformation ``tau (k, 3)``: least squares on the stacked two-sided correspondences
+      ``[Phi_X; P_adj Phi_X] C ~ [P Phi_Y; Phi_Y]`` and ``[Phi_X; P_adj Phi_X] tau ~ [P Y_k - X_k; Y_k - P_adj X_k]``
+      (float64 normal equations with a tiny ridge, :mod:`shapecorr.matching.least_squares`);
+   c. product-space embedding of the deformed shell ``X* = X_k + Phi_X tau`` and of ``Y_k``:
+      ``[X*, a_s Phi_X C, a_n n(X*)]`` vs ``[Y_k, a_s Phi_Y, a_n n(Y_k)]`` with ``a_s = fac_spec |Y_k| / |Phi_Y|``
+      and ``a_n = fac_norm |Y_k| / |n(Y_k)|`` (Frobenius norms);
+   d. new ``P, P_adj`` = Sinkhorn of the embedding distances; level energy
+      ``E_k = sum |X* - P Y_k|^2 + sum |P_adj X* - Y_k|^2`` over the samples (a sum, as in the original);
+
+3. loss = mean of the ``E_k``. Gradients flow through every Sinkhorn and every solve into the features.
+
+Only what the samples need is computed: ``Phi`` rows and shells at the samples, the deformed shell on the
+samples' one-ring (for their normals); ``Y_k`` (feature independent) at full resolution for its norms.
+
+Test time (:func:`deep_shells_query`): feature Sinkhorn and one OT level at ``k_array[0]`` (no gradients),
+then at full resolution a bidirectional nearest-neighbour matching in that level's embedding, followed by the
+axiomatic refinement :func:`refine_deep_shells`: 40 log-spaced shell sizes from 6 to 499, each fitting
+``(C, tau)`` by least squares on the current two-sided nearest-neighbour pairs and re-matching.
+
+Decisions on the points the methods digest marks [BUG?] (``DeepShellsConfig.original()`` restores all of the
+original Python behaviour, and is what the parity test uses):
+
+- Shell of X (``smooth_x``): the Deep Shells code truncates X hard at ``k`` but smooths Y with the sigmoid
+  weights, so ``Y_k`` keeps frequencies up to ``k + 8`` that ``X* = X_k + Phi_X[:, :k] tau`` cannot represent.
+  Default ``"sigmoid"``: both shells are sigmoid smoothed, as in the paper and the MATLAB Smooth Shells.
+  Original: ``"hard"``.
+- Sigmoid length (``sigmoid_inclusive``): MATLAB uses ``k+9`` weights (the last equals the truncation threshold
+  0.01), the Python port ``k+8``. Default ``True`` (MATLAB, the designed range); original ``False``.
+- Normal weight (``normal_norm``): the original divides by the norm of Y's normals **at the samples** but by
+  the norm of ``Y_k`` over **all** vertices, so the normal weight grows with ``sqrt(n / n_samples)`` and differs
+  between training (2000 samples) and test (all vertices). Default ``"all"``: both norms over all vertices,
+  so training and test embeddings agree. Original: ``"samples"``. At full resolution both coincide.
+- Scale factors: the MATLAB Smooth Shells scales X's embedding with Y's factors and vice versa; Deep Shells
+  uses one pair of factors, computed from Y, for both sides, which is what a distance between the two
+  embeddings needs. Kept (there is no swap here to reproduce).
+- Solves: float64 normal equations with a relative ridge of ``ridge`` (default 1e-8) instead of float32
+  unregularized ``torch.solve``; differences are far below float32 resolution on well-posed problems.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+
+from shapecorr.errors import ConfigError, InvalidMeshError, NumericalError
+from shapecorr.geometry.normals import vertex_normals
+from shapecorr.geometry.shells import sigmoid_shell_weights, smooth_shell, spectral_coefficients
+from shapecorr.matching.least_squares import DEFAULT_RIDGE, normal_equations, solve_normal_equations
+from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
+from shapecorr.matching.sinkhorn import (
+    DEFAULT_NUM_ITERS,
+    DEFAULT_SIGMA,
+    SinkhornPlans,
+    pairwise_sq_dists,
+    sinkhorn_log_reference,
+    sinkhorn_sq_euclidean,
+)
+
+#: Training shell sizes: DeepParam k_min=6, k_max=21, k_array_len=8, log-spaced and int-truncated
+#: (stored in the released checkpoint's ``par.k_array``).
+DEFAULT_K_ARRAY = (6, 7, 8, 10, 12, 14, 17, 21)
+#: DeepParam ``fac_spec``: weight of the spectral block of the training embedding.
+DEFAULT_FAC_SPEC = 0.3
+#: DeepParam ``fac_norm``: weight of the normals in the training embedding.
+DEFAULT_FAC_NORM = 0.025
+#: Param() defaults used by the test-time refinement (AssSmoothShells): fac_spec 0.25, fac_norm 0.04.
+DEFAULT_REFINE_FAC_SPEC = 0.25
+DEFAULT_REFINE_FAC_NORM = 0.04
+#: Param() k schedule of the refinement: 40 log-spaced sizes from 6 to 500, int-truncated (6, 6, 7, ..., 446, 499).
+DEFAULT_REFINE_K_MIN = 6
+DEFAULT_REFINE_K_MAX = 500
+DEFAULT_REFINE_LEVELS = 40
+#: DeepParam ``subsample_num``: random samples per shape and training step (drawn with replacement).
+DEFAULT_NUM_SAMPLES = 2000
+#: test_model ``max_vert``: larger shapes are farthest-point subsampled to this many points for the OT part.
+DEFAULT_MAX_QUERY_POINTS = 6000
+
+_SHELL_MODES = ("sigmoid", "hard")
+_NORMAL_NORMS = ("all", "samples")
+_SINKHORN_IMPLS = ("fast", "reference")
+_NN_BACKENDS = ("auto", "kdtree", "brute")
+
+
+def log_spaced_k(k_min: int, k_max: int, num: int) -> tuple[int, ...]:
+    """Shell sizes ``int(exp(linspace(log k_min, log k_max, num)))`` (the originals' schedule rule).
+
+    The truncation is kept on purpose: ``log_spaced_k(6, 500, 40)`` ends with 499 and starts with 6, 6.
+
+    Returns
+    -------
+    tuple of int, non-decreasing
+    """
+    if k_min < 1 or k_max < k_min or num < 1:
+        raise ConfigError(f"invalid k schedule: k_min={k_min}, k_max={k_max}, num={num}")
+    values = np.exp(np.linspace(np.log(k_min), np.log(k_max), num))
+    return tuple(max(1, int(v)) for v in values)
+
+
+@dataclass(frozen=True)
+class DeepShellsConfig:
+    """Hyperparameters of the Deep Shells matching layer and test-time refinement.
+
+    Defaults are the published values (released checkpoint ``par`` and ``param.py``), except for the
+    [BUG?] flags explained in the module docstring; :meth:`original` gives the original behaviour.
+
+    Attributes
+    ----------
+    k_array : tuple of int
+        Training shell sizes (coarse to fine). The test-time OT level uses ``k_array[0]``.
+    sigma : float
+        Sinkhorn temperature (``sigma_sink``).
+    num_sinkhorn : int
+        Sinkhorn normalization rounds (``num_sink``).
+    fac_spec, fac_norm : float
+        Weights of the spectral block and the normals in the training / OT embedding.
+    refine_fac_spec, refine_fac_norm : float
+        The same for the test-time refinement.
+    refine_k_min, refine_k_max, refine_levels : int
+        Refinement schedule, :func:`log_spaced_k` (6, 500, 40 -> 6, 6, 7, ..., 446, 499).
+    num_samples : int
+        Random vertices per shape and training step (used by the training module, not by the layer).
+    max_query_points : int
+        Test time: above this many vertices the OT part runs on farthest-point samples.
+    smooth_x : {"sigmoid", "hard"}
+        Shell of X; the original truncates hard ([BUG?], module docstring).
+    sigmoid_inclusive : bool
+        Sigmoid weight count k+9 (True, MATLAB) or k+8 (False, original Python port).
+    normal_norm : {"all", "samples"}
+        Vertices over which Y's normals are normed for their weight; the original uses the samples.
+    ridge : float
+        Relative ridge of the (C, tau) normal equations.
+    sinkhorn_impl : {"fast", "reference"}
+        :func:`~shapecorr.matching.sinkhorn.sinkhorn_sq_euclidean` or the op-by-op log-domain version.
+    nn_backend : {"auto", "kdtree", "brute"}
+        Nearest-neighbour search at test time (:mod:`shapecorr.matching.nearest_neighbors`).
+    """
+
+    k_array: tuple[int, ...] = DEFAULT_K_ARRAY
+    sigma: float = DEFAULT_SIGMA
+    num_sinkhorn: int = DEFAULT_NUM_ITERS
+    fac_spec: float = DEFAULT_FAC_SPEC
+    fac_norm: float = DEFAULT_FAC_NORM
+    refine_fac_spec: float = DEFAULT_REFINE_FAC_SPEC
+    refine_fac_norm: float = DEFAULT_REFINE_FAC_NORM
+    refine_k_min: int = DEFAULT_REFINE_K_MIN
+    refine_k_max: int = DEFAULT_REFINE_K_MAX
+    refine_levels: int = DEFAULT_REFINE_LEVELS
+    num_samples: int = DEFAULT_NUM_SAMPLES
+    max_query_points: int = DEFAULT_MAX_QUERY_POINTS
+    smooth_x: str = "sigmoid"
+    sigmoid_inclusive: bool = True
+    normal_norm: str = "all"
+    ridge: float = DEFAULT_RIDGE
+    sinkhorn_impl: str = "fast"
+    nn_backend: str = "auto"
+
+    def __post_init__(self):
+        object.__setattr__(self, "k_array", tuple(int(k) for k in self.k_array))
+        if not self.k_array or min(self.k_array) < 1:
+            raise ConfigError(f"deep_shells.k_array must be a non-empty list of sizes >= 1, got {self.k_array}")
+        if not self.sigma > 0:
+            raise ConfigError(f"deep_shells.sigma must be positive, got {self.sigma}")
+        if self.num_sinkhorn < 0:
+            raise ConfigError(f"deep_shells.num_sinkhorn must be >= 0, got {self.num_sinkhorn}")
+        for name in ("fac_spec", "fac_norm", "refine_fac_spec", "refine_fac_norm", "ridge"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"deep_shells.{name} must be >= 0, got {getattr(self, name)}")
+        log_spaced_k(self.refine_k_min, self.refine_k_max, self.refine_levels)  # validates
+        if self.num_samples < 1 or self.max_query_points < 2:
+            raise ConfigError(
+                f"deep_shells.num_samples must be >= 1 and max_query_points >= 2, got {self.num_samples}, "
+                f"{self.max_query_points}"
+            )
+        for name, allowed in (("smooth_x", _SHELL_MODES), ("normal_norm", _NORMAL_NORMS),
+                              ("sinkhorn_impl", _SINKHORN_IMPLS), ("nn_backend", _NN_BACKENDS)):
+            if getattr(self, name) not in allowed:
+                raise ConfigError(f"deep_shells.{name} must be one of {allowed}, got {getattr(self, name)!r}")
+
+    @classmethod
+    def original(cls, **overrides) -> "DeepShellsConfig":
+        """The behaviour of the original code on every [BUG?] point (for parity and published weights)."""
+        return replace(cls(smooth_x="hard", sigmoid_inclusive=False, normal_norm="samples"), **overrides)
+
+    @property
+    def refine_k_array(self) -> tuple[int, ...]:
+        """Shell sizes of the test-time refinement."""
+        return log_spaced_k(self.refine_k_min, self.refine_k_max, self.refine_levels)
+
+
+@dataclass(frozen=True, eq=False)
+class SpectralShape:
+    """Full-resolution per-shape quantities the shell methods need.
+
+    Attributes
+    ----------
+    verts : (n, 3) float
+    faces : (f, 3) int64
+    evecs : (n, K) float
+        Mass-orthonormal eigenfunctions, ascending eigenvalues.
+    mass : (n,) float
+        Lumped vertex areas.
+    coeffs : (K, 3) float
+        Spectral coefficients of the coordinates, ``evecs^T diag(mass) verts``.
+    name : str
+    """
+
+    verts: torch.Tensor
+    faces: torch.Tensor
+    evecs: torch.Tensor
+    mass: torch.Tensor
+    coeffs: torch.Tensor
+    name: str = "shape"
+
+    @property
+    def n_verts(self) -> int:
+        return int(self.verts.shape[0])
+
+    @property
+    def n_eigs(self) -> int:
+        return int(self.evecs.shape[1])
+
+    def to(self, device: torch.device | str) -> "SpectralShape":
+        """Copy with all tensors on ``device``."""
+        return replace(self, verts=self.verts.to(device), faces=self.faces.to(device), evecs=self.evecs.to(device),
+                       mass=self.mass.to(device), coeffs=self.coeffs.to(device))
+
+
+def make_spectral_shape(
+    verts: torch.Tensor, faces: torch.Tensor, evecs: torch.Tensor, mass: torch.Tensor, name: str = "shape"
+) -> SpectralShape:
+    """Validate the operators of a shape and precompute its coordinate coefficients.
+
+    Parameters
+    ----------
+    verts : (n, 3) float
+    faces : (f, 3) int
+    evecs : (n, K) float
+    mass : (n,) float
+    name : str
+        Used in error messages.
+
+    Returns
+    -------
+    SpectralShape
+    """
+    verts = torch.as_tensor(verts)
+    faces = torch.as_tensor(faces).to(torch.int64)
+    evecs = torch.as_tensor(evecs).to(verts.dtype)
+    mass = torch.as_tensor(mass).to(verts.dtype)
+    n = verts.shape[0]
+    if verts.dim() != 2 or verts.shape[1] != 3 or faces.dim() != 2 or faces.shape[1] != 3:
+        raise InvalidMeshError(f"{name}: need verts (n, 3) and faces (f, 3), got {tuple(verts.shape)}, "
+                               f"{tuple(faces.shape)}")
+    if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= n):
+        raise InvalidMeshError(f"{name}: face indices out of range for {n} vertices")
+    if evecs.dim() != 2 or evecs.shape[0] != n or mass.shape != (n,):
+        raise InvalidMeshError(f"{name}: operators do not match the {n} vertices: evecs {tuple(evecs.shape)}, "
+                               f"mass {tuple(mass.shape)}")
+    for label, t in (("vertices", verts), ("eigenvectors", evecs), ("mass", mass)):
+        if not torch.isfinite(t).all():
+            raise InvalidMeshError(f"{name}: the {label} contain NaN or Inf")
+    coeffs = spectral_coefficients(evecs, mass, verts)
+    return SpectralShape(verts=verts, faces=faces, evecs=evecs, mass=mass, coeffs=coeffs, name=name)
+
+
+@dataclass(frozen=True, eq=False)
+class DeepShellsOutput:
+    """Result of the training layer.
+
+    Attributes
+    ----------
+    loss : () float
+        Mean of the level energies.
+    level_energies : (L,) float
+        ``E_k`` per shell size of ``k_array``.
+    plan : (n_s, m_s) float
+        Final soft map X -> Y on the samples (rows sum to 1).
+    plan_adj : (m_s, n_s) float
+        Final soft map Y -> X (rows sum to 1).
+    fmap : (k, k) float
+        Functional map of the last level (``Phi_X C ~ Phi_Y``).
+    tau : (k, 3) float
+        Spectral deformation of the last level.
+    deformed_x : (n_s, 3) float
+        ``X* = X_k + Phi_X tau`` at the samples, last level.
+    shell_y : (m_s, 3) float
+        ``Y_k`` at the samples, last level.
+    """
+
+    loss: torch.Tensor
+    level_energies: torch.Tensor
+    plan: torch.Tensor
+    plan_adj: torch.Tensor
+    fmap: torch.Tensor
+    tau: torch.Tensor
+    deformed_x: torch.Tensor
+    shell_y: torch.Tensor
+
+
+@dataclass(frozen=True, eq=False)
+class DeepShellsMatch:
+    """Result of the test-time pipeline / refinement (point-to-point maps at full resolution).
+
+    Attributes
+    ----------
+    map_x_to_y : (n_x,) int64
+        For each vertex of X its matched vertex of Y.
+    map_y_to_x : (n_y,) int64
+        For each vertex of Y its matched vertex of X.
+    fmap : (k, k) float
+        Functional map of the last refinement level.
+    tau : (k, 3) float
+        Spectral deformation of the last level.
+    deformed_x : (n_x, 3) float
+        ``X* = X_k + Phi_X tau`` of the last level.
+    """
+
+    map_x_to_y: torch.Tensor
+    map_y_to_x: torch.Tensor
+    fmap: torch.Tensor
+    tau: torch.Tensor
+    deformed_x: torch.Tensor = field(repr=False)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# building blocks
+
+
+def shell_size(k: int, mode: str, inclusive: bool) -> int:
+    """Number of eigenfunctions a shell of size ``k`` uses (``k`` for hard truncation)."""
+    if mode == "hard":
+        return k
+    return int(sigmoid_shell_weights(k, inclusive=inclusive).shape[0])
+
+
+def _shell(shape: SpectralShape, k: int, mode: str, inclusive: bool, rows: torch.Tensor | None = None):
+    """Smooth shell of ``shape`` at all vertices or at ``rows``: ``(n or r, 3)``."""
+    if rows is None:
+        return smooth_shell(shape.evecs, shape.mass, shape.verts, k, mode=mode, inclusive=inclusive,
+                            coefficients=shape.coeffs)
+    if mode == "hard":
+        return shape.evecs[rows, :k] @ shape.coeffs[:k]
+    w = sigmoid_shell_weights(k, inclusive=inclusive, dtype=shape.evecs.dtype, device=shape.evecs.device)
+    kk = w.shape[0]
+    return shape.evecs[rows, :kk] @ (w[:, None] * shape.coeffs[:kk])
+
+
+class _Stencil:
+    """The faces around a set of vertices, relabelled: normals at the samples without the whole mesh."""
+
+    def __init__(self, faces: torch.Tensor, rows: torch.Tensor, n_verts: int):
+        in_rows = torch.zeros(n_verts, dtype=torch.bool, device=faces.device)
+        in_rows[rows] = True
+        sub_faces = faces[in_rows[faces].any(1)]
+        self.verts = torch.unique(torch.cat([sub_faces.reshape(-1), rows]))  # sorted
+        self.faces = torch.searchsorted(self.verts, sub_faces)
+        self.rows = torch.searchsorted(self.verts, rows)
+
+    def normals(self, local_verts: torch.Tensor) -> torch.Tensor:
+        """Unit area-weighted normals at the rows, given positions ``(len(self.verts), 3)``."""
+        return vertex_normals(local_verts, self.faces)[self.rows]
+
+
+def _check_eigs(shape: SpectralShape, ks, config: DeepShellsConfig) -> None:
+    need = max(max(shell_size(k, config.smooth_x, config.sigmoid_inclusive),
+                   shell_size(k, "sigmoid", config.sigmoid_inclusive)) for k in ks)
+    if shape.n_eigs < need:
+        raise ConfigError(
+            f"{shape.name}: the shell schedule up to k={max(ks)} needs {need} eigenfunctions, the shape has "
+            f"{shape.n_eigs}; compute more eigenpairs or shorten the schedule"
+        )
+
+
+def _embedding_scales(shell_y_full, evecs_y_k, normals_y_for_norm, fac_spec, fac_norm):
+    """Weights of the spectral block and of the normals (from Y, shared by both sides)."""
+    y_norm = shell_y_full.norm()
+    phi_norm = evecs_y_k.norm()
+    n_norm = normals_y_for_norm.norm()
+    if float(phi_norm) == 0.0 or float(n_norm) == 0.0:
+        raise NumericalError("deep shells: zero eigenfunction or normal norm; cannot scale the embedding")
+    return fac_spec * y_norm / phi_norm, fac_norm * y_norm / n_norm
+
+
+def _sinkhorn(config: DeepShellsConfig, emb_x: torch.Tensor, emb_y: torch.Tensor) -> SinkhornPlans:
+    if config.sinkhorn_impl == "reference":
+        return sinkhorn_log_reference(pairwise_sq_dists(emb_x, emb_y), config.sigma, config.num_sinkhorn)
+    return sinkhorn_sq_euclidean(emb_x, emb_y, config.sigma, config.num_sinkhorn)
+
+
+def deformation_from_plans(
+    plan: torch.Tensor,
+    plan_adj: torch.Tensor,
+    phi_x: torch.Tensor,
+    phi_y: torch.Tensor,
+    shell_x: torch.Tensor,
+    shell_y: torch.Tensor,
+    ridge: float = DEFAULT_RIDGE,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Closed-form functional map and deformation from soft correspondences (Deep Shells eq. for C, tau).
+
+    Least squares over the stacked two-sided correspondences (rows: X samples through ``plan``, then Y samples
+    through ``plan_adj``): ``A = [Phi_X; P_adj Phi_X]``, ``A C ~ [P Phi_Y; Phi_Y]``,
+    ``A tau ~ [P Y_k - X_k; Y_k - P_adj X_k]``, solved in float64.
+
+    Parameters
+    ----------
+    plan : (n, m) float
+        Soft map X -> Y (rows sum to 1).
+    plan_adj : (m, n) float
+        Soft map Y -> X.
+    phi_x : (n, k) float
+        Eigenfunctions of X at its samples.
+    phi_y : (m, k) float
+        Eigenfunctions of Y at its samples.
+    shell_x : (n, 3) float
+        ``X_k`` at the samples.
+    shell_y : (m, 3) float
+        ``Y_k`` at the samples.
+    ridge : float
+        Relative ridge, :func:`~shapecorr.matching.least_squares.solve_normal_equations`.
+
+    Returns
+    -------
+    fmap : (k, k) float
+    tau : (k, 3) float
+    """
+    k = phi_x.shape[1]
+    py = plan @ torch.cat([phi_y, shell_y], 1)  # (n, k + 3)
+    qx = plan_adj @ torch.cat([phi_x, shell_x], 1)  # (m, k + 3)
+    design = torch.cat([phi_x, qx[:, :k]], 0)
+    target = torch.cat([
+        torch.cat([py[:, :k], py[:, k:] - shell_x], 1),
+        torch.cat([phi_y, shell_y - qx[:, k:]], 1),
+    ], 0)
+    gram, rhs = normal_equations(design, target)
+    sol = solve_normal_equations(gram, rhs, ridge=ridge, what=f"Deep Shells (C, tau) solve at k={k}")
+    sol = sol.to(phi_x.dtype)
+    return sol[:, :k], sol[:, k:]
+
+
+def deformation_from_pairs(
+    phi_x: torch.Tensor,
+    phi_y: torch.Tensor,
+    shell_x: torch.Tensor,
+    shell_y: torch.Tensor,
+    map_x_to_y: torch.Tensor,
+    map_y_to_x: torch.Tensor,
+    ridge: float = DEFAULT_RIDGE,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Functional map and deformation from two-sided hard correspondences (the refinement's solve).
+
+    The pairs are ``(i, map_x_to_y[i])`` for all vertices i of X and ``(map_y_to_x[j], j)`` for all j of Y;
+    ``Phi_X[px] C ~ Phi_Y[py]`` and ``Phi_X[px] tau ~ Y_k[py] - X_k[px]`` in the least-squares sense. The
+    normal equations are accumulated per vertex of X (multiplicities and scatter-adds) instead of over the
+    ``n_x + n_y`` stacked rows.
+
+    Parameters
+    ----------
+    phi_x : (n_x, k) float
+        Eigenfunctions of X (float64 recommended for large k).
+    phi_y : (n_y, k) float
+    shell_x : (n_x, 3) float
+    shell_y : (n_y, 3) float
+    map_x_to_y : (n_x,) int64
+    map_y_to_x : (n_y,) int64
+    ridge : float
+
+    Returns
+    -------
+    fmap : (k, k) float64
+    tau : (k, 3) float64
+    """
+    n_x, k = phi_x.shape
+    f64 = torch.float64
+    phi_y64 = phi_y.to(f64)
+    sx, sy = shell_x.to(f64), shell_y.to(f64)
+    extra = torch.bincount(map_y_to_x, minlength=n_x).to(f64)  # how often each X vertex is a Y -> X image
+    target = torch.cat([phi_y64[map_x_to_y], sy[map_x_to_y] - sx], 1)
+    target.index_add_(0, map_y_to_x, torch.cat([phi_y64, sy], 1))
+    target[:, k:] -= extra[:, None] * sx
+    phi_x64 = phi_x.to(f64)
+    # sum over pairs of Phi_X[px]^T Phi_X[px] = Phi_X^T diag(multiplicity) Phi_X; the right-hand side sums
+    # are already accumulated per X vertex in `target`.
+    gram = phi_x64.transpose(0, 1) @ ((1.0 + extra)[:, None] * phi_x64)
+    rhs = phi_x64.transpose(0, 1) @ target
+    sol = solve_normal_equations(gram, rhs, ridge=ridge, what=f"Deep Shells refinement solve at k={k}")
+    return sol[:, :k], sol[:, k:]
+
+
+def _product_embedding(deformed_x, spec_x, normals_x, shell_y, spec_y, normals_y, fac_s, fac_n):
+    emb_x = torch.cat([deformed_x, fac_s * spec_x, fac_n * normals_x], 1)
+    emb_y = torch.cat([shell_y, fac_s * spec_y, fac_n * normals_y], 1)
+    return emb_x, emb_y
+
+
+def random_samples(n: int, num: int, generator: torch.Generator | None = None, device=None) -> torch.Tensor:
+    """``num`` vertex indices drawn uniformly **with replacement** (the Deep Shells training subsampling).
+
+    Returns
+    -------
+    (num,) int64
+    """
+    return torch.randint(0, n, (num,), generator=generator, device=device)
+
+
+def farthest_point_sampling(points: torch.Tensor, num: int, start: int = 0) -> torch.Tensor:
+    """Greedy farthest-point sampling (Euclidean), starting at vertex ``start``.
+
+    Written here because none of the dependencies provides it (torch_cluster / open3d are not
+    dependencies); one vectorized distance update per sample, ``O(n num)``.
+
+    Parameters
+    ----------
+    points : (n, d) float
+    num : int
+        Number of samples, ``<= n``.
+    start : int
+
+    Returns
+    -------
+    (num,) int64
+    """
+    n = points.shape[0]
+    if not 1 <= num <= n:
+        raise ConfigError(f"farthest_point_sampling: cannot draw {num} samples from {n} points")
+    p = points.detach()
+    chosen = torch.empty(num, dtype=torch.int64, device=p.device)
+    chosen[0] = start
+    dist = ((p - p[start]) ** 2).sum(1)
+    for i in range(1, num):
+        nxt = torch.argmax(dist)
+        chosen[i] = nxt
+        dist = torch.minimum(dist, ((p - p[nxt]) ** 2).sum(1))
+    return chosen
+
+
+# ----------------------------------------------------------------------------------------------------------
+# the training layer
+
+
+def _check_samples(shape: SpectralShape, samples: torch.Tensor, feats: torch.Tensor, side: str) -> None:
+    if samples.dim() != 1 or samples.dtype != torch.int64:
+        raise ConfigError(f"deep shells: samples_{side} must be a 1-D int64 tensor")
+    if samples.numel() == 0 or int(samples.min()) < 0 or int(samples.max()) >= shape.n_verts:
+        raise ConfigError(f"deep shells: samples_{side} out of range for {shape.name} ({shape.n_verts} vertices)")
+    if feats.dim() != 2 or feats.shape[0] != samples.shape[0]:
+        raise ConfigError(
+            f"deep shells: feat_{side} must have one row per sample ({samples.shape[0]}), got {tuple(feats.shape)}"
+        )
+    if not torch.isfinite(feats).all():
+        raise NumericalError(f"deep shells: feat_{side} ({shape.name}) contains NaN or Inf")
+
+
+def deep_shells_layer(
+    feat_x: torch.Tensor,
+    feat_y: torch.Tensor,
+    shape_x: SpectralShape,
+    shape_y: SpectralShape,
+    samples_x: torch.Tensor,
+    samples_y: torch.Tensor,
+    config: DeepShellsConfig = DeepShellsConfig(),
+) -> DeepShellsOutput:
+    """The differentiable hierarchical OT matching layer (training forward).
+
+    Parameters
+    ----------
+    feat_x : (n_s, c) float
+        Features of X at its sampled vertices (any ``c``: learned features or raw descriptors).
+    feat_y : (m_s, c) float
+        Features of Y at its samples.
+    shape_x, shape_y : SpectralShape
+        Full-resolution vertices, faces, eigenfunctions, mass.
+    samples_x : (n_s,) int64
+        Sampled vertex indices of X (repetitions allowed).
+    samples_y : (m_s,) int64
+    config : DeepShellsConfig
+
+    Returns
+    -------
+    DeepShellsOutput
+        Total loss (mean of the per-level energies), the energies, the final soft maps, the last ``C``,
+        ``tau`` and the last deformed / target shells at the samples.
+
+    Raises
+    ------
+    ConfigError
+        On inconsistent inputs (sample counts, feature widths, too few eigenpairs).
+    NumericalError
+        If a solve fails or NaN/Inf appears.
+    """
+    _check_samples(shape_x, samples_x, feat_x, "x")
+    _check_samples(shape_y, samples_y, feat_y, "y")
+    if feat_x.shape[1] != feat_y.shape[1]:
+        raise ConfigError(f"deep shells: feature widths differ ({feat_x.shape[1]} vs {feat_y.shape[1]})")
+    _check_eigs(shape_x, config.k_array, config)
+    _check_eigs(shape_y, config.k_array, config)
+    incl = config.sigmoid_inclusive
+
+    plan, plan_adj = _sinkhorn(config, feat_x, feat_y)
+    stencil = _Stencil(shape_x.faces, samples_x, shape_x.n_verts)
+    energies = []
+    for k in config.k_array:
+        phi_x = shape_x.evecs[samples_x, :k]
+        phi_y = shape_y.evecs[samples_y, :k]
+        shell_x = _shell(shape_x, k, config.smooth_x, incl, rows=stencil.verts)  # one-ring of the samples
+        shell_x_s = shell_x[stencil.rows]
+        shell_y_full = _shell(shape_y, k, "sigmoid", incl)
+        shell_y = shell_y_full[samples_y]
+        fmap, tau = deformation_from_plans(plan, plan_adj, phi_x, phi_y, shell_x_s, shell_y, config.ridge)
+
+        deformed = shell_x + shape_x.evecs[stencil.verts, :k] @ tau
+        deformed_s = deformed[stencil.rows]
+        normals_x = stencil.normals(deformed)
+        normals_y_full = vertex_normals(shell_y_full, shape_y.faces)
+        normals_y = normals_y_full[samples_y]
+        fac_s, fac_n = _embedding_scales(
+            shell_y_full, shape_y.evecs[:, :k], normals_y_full if config.normal_norm == "all" else normals_y,
+            config.fac_spec, config.fac_norm,
+        )
+        emb_x, emb_y = _product_embedding(deformed_s, phi_x @ fmap, normals_x, shell_y, phi_y, normals_y,
+                                          fac_s, fac_n)
+        plan, plan_adj = _sinkhorn(config, emb_x, emb_y)
+        energies.append((deformed_s - plan @ shell_y).square().sum()
+                        + (plan_adj @ deformed_s - shell_y).square().sum())
+    level_energies = torch.stack(energies)
+    loss = level_energies.mean()
+    if not torch.isfinite(loss):
+        raise NumericalError("deep shells: the loss is NaN or Inf")
+    return DeepShellsOutput(loss=loss, level_energies=level_energies, plan=plan, plan_adj=plan_adj,
+                            fmap=fmap, tau=tau, deformed_x=deformed_s, shell_y=shell_y)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# test time
+
+
+def _full_embedding(shape_x, shape_y, k, fmap, tau, fac_spec, fac_norm, config, shell_x=None, shell_y=None):
+    """Full-resolution product embedding for shell size ``k`` and a fitted ``(C, tau)``."""
+    incl = config.sigmoid_inclusive
+    if shell_x is None:
+        shell_x = _shell(shape_x, k, config.smooth_x, incl)
+    if shell_y is None:
+        shell_y = _shell(shape_y, k, "sigmoid", incl)
+    phi_x, phi_y = shape_x.evecs[:, :k], shape_y.evecs[:, :k]
+    deformed = shell_x + phi_x @ tau
+    normals_x = vertex_normals(deformed, shape_x.faces)
+    normals_y = vertex_normals(shell_y, shape_y.faces)
+    fac_s, fac_n = _embedding_scales(shell_y, phi_y, normals_y, fac_spec, fac_norm)
+    emb_x, emb_y = _product_embedding(deformed, phi_x @ fmap, normals_x, shell_y, phi_y, normals_y, fac_s, fac_n)
+    return emb_x, emb_y, deformed
+
+
+def refine_deep_shells(
+    shape_x: SpectralShape,
+    shape_y: SpectralShape,
+    map_x_to_y: torch.Tensor,
+    map_y_to_x: torch.Tensor,
+    config: DeepShellsConfig = DeepShellsConfig(),
+) -> DeepShellsMatch:
+    """Axiomatic full-resolution shell refinement (the original test-time ``AssSmoothShells``).
+
+    For each ``k`` of ``config.refine_k_array``: smooth shells, least-squares ``(C, tau)`` on the current
+    two-sided pairs (:func:`deformation_from_pairs`), product embedding with
+    ``(refine_fac_spec, refine_fac_norm)``, bidirectional nearest neighbours -> new pairs.
+
+    Parameters
+    ----------
+    shape_x, shape_y : SpectralShape
+    map_x_to_y : (n_x,) int64
+        Initial map X -> Y.
+    map_y_to_x : (n_y,) int64
+        Initial map Y -> X.
+    config : DeepShellsConfig
+
+    Returns
+    -------
+    DeepShellsMatch
+    """
+    ks = config.refine_k_array
+    _check_eigs(shape_x, ks, config)
+    _check_eigs(shape_y, ks, config)
+    if map_x_to_y.shape != (shape_x.n_verts,) or map_y_to_x.shape != (shape_y.n_verts,):
+        raise ConfigError("refine_deep_shells: the initial maps must have one entry per vertex of X and of Y")
+    incl = config.sigmoid_inclusive
+    with torch.no_grad():
+        phi_x64 = shape_x.evecs[:, : max(ks)].to(torch.float64)
+        for k in ks:
+            shell_x = _shell(shape_x, k, config.smooth_x, incl)
+            shell_y = _shell(shape_y, k, "sigmoid", incl)
+            fmap, tau = deformation_from_pairs(phi_x64[:, :k], shape_y.evecs[:, :k], shell_x, shell_y,
+                                               map_x_to_y, map_y_to_x, config.ridge)
+            fmap, tau = fmap.to(shape_x.evecs.dtype), tau.to(shape_x.evecs.dtype)
+            emb_x, emb_y, deformed = _full_embedding(shape_x, shape_y, k, fmap, tau, config.refine_fac_spec,
+                                                     config.refine_fac_norm, config, shell_x, shell_y)
+            map_x_to_y, map_y_to_x = bidirectional_nearest_neighbors(emb_x, emb_y, backend=config.nn_backend)
+    return DeepShellsMatch(map_x_to_y=map_x_to_y, map_y_to_x=map_y_to_x, fmap=fmap, tau=tau, deformed_x=deformed)
+
+
+def deep_shells_query(
+    feat_x: torch.Tensor,
+    feat_y: torch.Tensor,
+    shape_x: SpectralShape,
+    shape_y: SpectralShape,
+    config: DeepShellsConfig = DeepShellsConfig(),
+    refine: bool = True,
+) -> DeepShellsMatch:
+    """Test-time matching of a pair from full-resolution features (the original ``test_model``).
+
+    1. If a shape has more than ``max_query_points`` vertices, both are farthest-point subsampled to
+       ``min(n_x - 1, n_y - 1, max_query_points)`` points (deterministic start at vertex 0; the original
+       starts at a random vertex) for steps 2-3.
+    2. Feature Sinkhorn; one OT level at ``k = k_array[0]``: ``(C, tau)`` from the soft maps.
+    3. Full-resolution product embedding of that level (``fac_spec``, ``fac_norm``) and bidirectional nearest
+       neighbours.
+    4. :func:`refine_deep_shells` (skipped if ``refine=False``).
+
+    Parameters
+    ----------
+    feat_x : (n_x, c) float
+        Features at every vertex of X.
+    feat_y : (n_y, c) float
+    shape_x, shape_y : SpectralShape
+    config : DeepShellsConfig
+    refine : bool
+
+    Returns
+    -------
+    DeepShellsMatch
+        Point-to-point maps in both directions.
+    """
+    n_x, n_y = shape_x.n_verts, shape_y.n_verts
+    if feat_x.shape[0] != n_x or feat_y.shape[0] != n_y or feat_x.shape[1] != feat_y.shape[1]:
+        raise ConfigError(
+            f"deep_shells_query: need features at every vertex, got {tuple(feat_x.shape)} for {n_x} vertices "
+            f"and {tuple(feat_y.shape)} for {n_y}"
+        )
+    k = config.k_array[0]
+    _check_eigs(shape_x, (k,), config)
+    _check_eigs(shape_y, (k,), config)
+    with torch.no_grad():
+        if max(n_x, n_y) > config.max_query_points:
+            num = min(n_x - 1, n_y - 1, config.max_query_points)
+            samples_x = farthest_point_sampling(shape_x.verts, num)
+            samples_y = farthest_point_sampling(shape_y.verts, num)
+        else:
+            samples_x = torch.arange(n_x, device=feat_x.device)
+            samples_y = torch.arange(n_y, device=feat_y.device)
+        fx, fy = feat_x[samples_x], feat_y[samples_y]
+        if not (torch.isfinite(fx).all() and torch.isfinite(fy).all()):
+            raise NumericalError("deep_shells_query: the features contain NaN or Inf")
+        plan, plan_adj = _sinkhorn(config, fx, fy)
+        incl = config.sigmoid_inclusive
+        fmap, tau = deformation_from_plans(
+            plan, plan_adj, shape_x.evecs[samples_x, :k], shape_y.evecs[samples_y, :k],
+            _shell(shape_x, k, config.smooth_x, incl, rows=samples_x),
+            _shell(shape_y, k, "sigmoid", incl, rows=samples_y), config.ridge,
+        )
+        del plan, plan_adj
+        emb_x, emb_y, deformed = _full_embedding(shape_x, shape_y, k, fmap, tau, config.fac_spec,
+                                                 config.fac_norm, config)
+        map_x_to_y, map_y_to_x = bidirectional_nearest_neighbors(emb_x, emb_y, backend=config.nn_backend)
+    if not refine:
+        return DeepShellsMatch(map_x_to_y=map_x_to_y, map_y_to_x=map_y_to_x, fmap=fmap, tau=tau,
+                               deformed_x=deformed)
+    return refine_deep_shells(shape_x, shape_y, map_x_to_y, map_y_to_x, config)

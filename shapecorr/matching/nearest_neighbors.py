@@ -1,0 +1,113 @@
+"""Exact nearest neighbours between two embeddings, in both directions.
+
+Used by the axiomatic shell refinements (Deep Shells test time, G-MSM queries, Smooth Shells): for every
+point of X its nearest point of Y in the product-space embedding and vice versa.
+
+Backends:
+
+- ``"kdtree"``: scipy's ``cKDTree`` in float64 (exact), one tree per side, queries in parallel threads.
+  Fast for the low-dimensional embeddings of coarse levels.
+- ``"brute"``: blocked exact search with torch on the tensors' device (CPU or GPU): distance blocks from one
+  matrix product each, both directions from the same blocks (row argmin per block, running column minimum).
+  Never holds more than ``block_size * m`` distances.
+- ``"auto"``: ``"brute"`` on CUDA tensors, ``"kdtree"`` otherwise.
+
+Ties are broken arbitrarily (by the backend); the squared-distance expansion of ``"brute"`` is evaluated in
+float64 unless ``exact=False``, so both backends return the same neighbours up to exact ties.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from shapecorr.errors import ConfigError, NumericalError
+
+#: Rows of X per distance block of the brute-force search (block of ``block_size x m`` entries).
+DEFAULT_BLOCK_SIZE = 2048
+#: Threads used by the kd-tree queries (-1: all cores).
+DEFAULT_WORKERS = -1
+
+_BACKENDS = ("auto", "kdtree", "brute")
+
+
+def _check(emb_x: torch.Tensor, emb_y: torch.Tensor) -> None:
+    if emb_x.dim() != 2 or emb_y.dim() != 2 or emb_x.shape[1] != emb_y.shape[1]:
+        raise ValueError(f"nearest neighbours: need (n, d) and (m, d), got {tuple(emb_x.shape)}, {tuple(emb_y.shape)}")
+    if emb_x.shape[0] == 0 or emb_y.shape[0] == 0:
+        raise ValueError("nearest neighbours: empty point set")
+    if not (torch.isfinite(emb_x).all() and torch.isfinite(emb_y).all()):
+        raise NumericalError("nearest neighbours: the embedding contains NaN or Inf")
+
+
+def _kdtree(emb_x: torch.Tensor, emb_y: torch.Tensor, workers: int) -> tuple[torch.Tensor, torch.Tensor]:
+    x = emb_x.detach().to("cpu", torch.float64).numpy()
+    y = emb_y.detach().to("cpu", torch.float64).numpy()
+    _, nn_y = cKDTree(y).query(x, k=1, workers=workers)
+    _, nn_x = cKDTree(x).query(y, k=1, workers=workers)
+    device = emb_x.device
+    return (torch.from_numpy(np.asarray(nn_y, dtype=np.int64)).to(device),
+            torch.from_numpy(np.asarray(nn_x, dtype=np.int64)).to(device))
+
+
+def _brute(emb_x: torch.Tensor, emb_y: torch.Tensor, block_size: int, exact: bool):
+    dtype = torch.float64 if exact else emb_x.dtype
+    x = emb_x.detach().to(dtype)
+    y = emb_y.detach().to(dtype)
+    n, m = x.shape[0], y.shape[0]
+    yy = (y * y).sum(1)
+    nn_y = torch.empty(n, dtype=torch.int64, device=x.device)
+    col_best = torch.full((m,), float("inf"), dtype=dtype, device=x.device)
+    nn_x = torch.zeros(m, dtype=torch.int64, device=x.device)
+    for start in range(0, n, block_size):
+        xb = x[start:start + block_size]
+        # |x|^2 is constant per row, so rows only need |y|^2 - 2 x.y; columns need the full distance.
+        d = torch.addmm(yy[None, :], xb, y.transpose(0, 1), alpha=-2.0)
+        nn_y[start:start + xb.shape[0]] = d.argmin(1)
+        d.add_((xb * xb).sum(1)[:, None])
+        block_min, block_arg = d.min(0)
+        better = block_min < col_best
+        col_best = torch.where(better, block_min, col_best)
+        nn_x = torch.where(better, block_arg + start, nn_x)
+    return nn_y, nn_x
+
+
+def bidirectional_nearest_neighbors(
+    emb_x: torch.Tensor,
+    emb_y: torch.Tensor,
+    backend: str = "auto",
+    block_size: int = DEFAULT_BLOCK_SIZE,
+    exact: bool = True,
+    workers: int = DEFAULT_WORKERS,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest neighbours X -> Y and Y -> X (Euclidean).
+
+    Parameters
+    ----------
+    emb_x : (n, d) float
+    emb_y : (m, d) float
+    backend : {"auto", "kdtree", "brute"}
+        See the module docstring.
+    block_size : int
+        Rows per block for ``"brute"``.
+    exact : bool
+        ``"brute"`` only: evaluate distances in float64 (True) or in the input dtype.
+    workers : int
+        ``"kdtree"`` only: query threads (-1: all).
+
+    Returns
+    -------
+    nn_y_of_x : (n,) int64
+        For each point of X, the index of its nearest point of Y (a point-to-point map X -> Y).
+    nn_x_of_y : (m,) int64
+        For each point of Y, the index of its nearest point of X.
+    """
+    if backend not in _BACKENDS:
+        raise ConfigError(f"nearest-neighbour backend must be one of {_BACKENDS}, got {backend!r}")
+    _check(emb_x, emb_y)
+    if backend == "auto":
+        backend = "brute" if emb_x.device.type == "cuda" else "kdtree"
+    if backend == "kdtree":
+        return _kdtree(emb_x, emb_y, workers)
+    return _brute(emb_x, emb_y, int(block_size), exact)
