@@ -6,11 +6,12 @@
 
 import hydra
 
-from shapecorr.cli.evaluate import evaluate
-
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="evaluate")
 def main(cfg) -> None:
+    # Imported here so that `--help` and `--cfg job` answer without loading torch.
+    from shapecorr.cli.evaluate import evaluate
+
     evaluate(cfg)
 
 

@@ -91,8 +91,7 @@ def descriptor_cached(cache: ShapeCache, verts, faces, cfg: OperatorConfig, name
         params = {"radius_factor": cfg.shot_radius_factor}
 
         def compute():
-            area = float(_total_area(verts, faces))
-            return {"shot": shot(verts, faces, radius=cfg.shot_radius_factor * np.sqrt(area))}
+            return {"shot": shot(verts, faces, radius_fraction=cfg.shot_radius_factor)}
 
     elif name in ("wks", "hks"):
         from shapecorr.geometry import descriptors
@@ -136,12 +135,6 @@ def compute_operators(cache: ShapeCache, verts, faces, cfg: OperatorConfig) -> d
     for name in cfg.descriptors:
         out[name] = descriptor_cached(cache, verts, faces, cfg, name)
     return out
-
-
-def _total_area(verts, faces) -> float:
-    from shapecorr.data.shape import triangle_areas
-
-    return float(triangle_areas(np.asarray(verts), np.asarray(faces)).sum())
 
 
 def config_dict(cfg: OperatorConfig) -> dict:

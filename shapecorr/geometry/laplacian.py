@@ -23,6 +23,8 @@ infinite or badly negative. Its mass is the lumped mass of the intrinsic triangu
 
 from __future__ import annotations
 
+from contextlib import nullcontext
+
 import igl
 import numpy as np
 import robust_laplacian
@@ -33,6 +35,11 @@ from scipy.sparse.csgraph import connected_components
 
 from shapecorr.data.validation import check_mesh_arrays
 from shapecorr.errors import ConfigError, InvalidMeshError, NumericalError
+
+try:  # optional: limits BLAS threads during the ARPACK solves (see _single_threaded_blas)
+    from threadpoolctl import threadpool_limits
+except ImportError:  # pragma: no cover - only slower without it
+    threadpool_limits = None
 
 #: The original Smooth Shells / Deep Shells / G-MSM stiffness uses cot a + cot b (not 1/2 of it), so their
 #: eigenvalues are exactly this factor times ours (methods-digest §0.3).
@@ -60,18 +67,28 @@ EIGSH_TOL = 1e-10
 EIGSH_SLICE_SIZE = 100
 #: Fraction of each slice spent re-finding eigenvalues of the previous slice (guarantees no gap).
 EIGSH_SLICE_OVERLAP = 0.15
+#: Attempts to place a slice so that it reaches back below the boundary (shift halfway closer, 1.5x pairs).
+EIGSH_SLICE_RETRIES = 4
+#: Searches for eigenvalues missed by Lanczos (exact multiplicities), each orthogonal to those found.
+EIGSH_DEFLATION_ROUNDS = 12
+#: Extra pairs asked for beyond the needed ones in the last slice (at least this many, or OVERLAP * need).
+EIGSH_SLICE_MARGIN = 3
 #: Eigenvalues closer than this (relative to the largest one found) belong to one cluster (a multiple
 #: eigenvalue); clusters are never split between two slices.
 EIGSH_CLUSTER_RTOL = 1e-6
 #: Accepted residual ||A psi - lambda psi|| relative to mean(diag(A)) (a spectral-radius scale); a larger
-#: residual after the sliced solve triggers the single-solve fallback, after it a NumericalError.
+#: residual after the sliced solve triggers the dense fallback.
 EIGSH_RESIDUAL_RTOL = 1e-7
+#: Largest mesh for the dense fallback (an n x n float64 eigendecomposition: 16 s and 200 MB at n = 5000).
+DENSE_FALLBACK_MAX_N = 8000
 #: Up to this many vertices the eigenproblem is solved densely (LAPACK), which is faster there and exact.
 DENSE_MAX_N = 1000
 #: ... and also when more than this fraction of the spectrum is requested.
 DENSE_MAX_K_FRACTION = 0.3
 #: Eigenvalues at most this (relative to mean(diag(A))) count as zero (the constants of each component).
 ZERO_EVAL_RTOL = 1e-9
+#: Component areas equal to this many decimals (relative to the largest) are ties, ordered by first vertex.
+AREA_TIE_DECIMALS = 9
 #: Largest accepted negative eigenvalue (relative to mean(diag(A))) before clipping at zero.
 NEGATIVE_EVAL_RTOL = 1e-9
 #: Eigenvectors are re-orthonormalized when max |Phi^T M Phi - I| exceeds this.
@@ -292,45 +309,86 @@ def _lowest_eigenpairs(
     if scale is None:
         scale = float(np.mean(A.diagonal()))
     if n <= DENSE_MAX_N or k > DENSE_MAX_K_FRACTION * n:
-        evals, evecs = scipy.linalg.eigh(A.toarray(), subset_by_index=[0, k - 1])
-        return evals, evecs
-    v0 = np.random.default_rng(EIGSH_SEED).standard_normal(n)
+        return _dense_eigh(A, k)
     try:
-        evals, evecs = _sliced_eigsh(A, k, scale, slice_size, tol, v0)
+        with _single_threaded_blas():
+            evals, evecs = _sliced_eigsh(A, k, scale, slice_size, tol)
         if _max_residual(A, evals, evecs) <= EIGSH_RESIDUAL_RTOL * scale:
             return evals, evecs
-    except (_SliceGap, sla.ArpackNoConvergence, RuntimeError):
-        pass
-    # Fallback: one shift-invert run for all pairs (slow for large k, but no slicing logic involved).
-    try:
-        evals, evecs = _shift_invert(A, -EIGSH_SHIFT_REL * scale, k, tol, v0)
-    except sla.ArpackNoConvergence as err:
-        raise NumericalError(f"eigsh did not converge for {k} eigenpairs: {err}") from err
-    residual = _max_residual(A, evals, evecs)
-    if not residual <= EIGSH_RESIDUAL_RTOL * scale * 1e3:
-        raise NumericalError(f"eigen solve is inaccurate: residual {residual:.3g} (scale {scale:.3g})")
-    return evals, evecs
+        failure = "residual check failed"
+    except (_SliceError, sla.ArpackNoConvergence, sla.ArpackError, RuntimeError) as err:
+        failure = str(err)
+    if n <= DENSE_FALLBACK_MAX_N:
+        return _dense_eigh(A, k)
+    raise NumericalError(f"sparse eigen solve for {k} eigenpairs failed ({failure}) and the mesh is too large "
+                         f"({n} > {DENSE_FALLBACK_MAX_N} vertices) for the dense fallback")
 
 
-class _SliceGap(Exception):
-    """A spectral slice did not reach down to the previous slice (a gap could hide eigenvalues)."""
+def _single_threaded_blas():
+    """Context in which BLAS runs on one thread (when threadpoolctl is installed).
+
+    ARPACK's Lanczos steps are BLAS-2 products with (n, ncv) blocks, too small to gain from threads; OpenBLAS
+    threads them anyway, and on this 2-core machine shared with other jobs that made the 500-pair solve of
+    a 5k-vertex mesh 2-5x slower in wall time (OPENBLAS_NUM_THREADS=1 vs default, measured while other
+    processes were running). The sparse LU solves are single-threaded in any case.
+    """
+    return threadpool_limits(limits=1, user_api="blas") if threadpool_limits is not None else nullcontext()
 
 
-def _shift_invert(A, sigma: float, m: int, tol: float, v0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The ``m`` eigenpairs of ``A`` nearest to ``sigma``, ascending, via a sparse LU of ``A - sigma I``."""
+def _dense_eigh(A, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """LAPACK eigendecomposition of the dense matrix (exact, O(n^3))."""
+    return scipy.linalg.eigh(A.toarray(), subset_by_index=[0, k - 1])
+
+
+class _SliceError(Exception):
+    """A spectral slice could not be completed (verified) after the allowed retries."""
+
+
+def _ldlt(A, x: float):
+    """Sparse LU of ``A - x I`` with symmetric (diagonal) pivoting, i.e. an LDL^T factorization."""
     n = A.shape[0]
-    # Symmetric fill-reducing ordering with threshold pivoting: 10-20% less fill than partial pivoting,
-    # stable for these diagonally dominant-ish shifted Laplacians (the residual check guards it).
-    lu = sla.splu(
-        sp.csc_matrix(A - sigma * sp.eye(n, format="csc")),
+    return sla.splu(
+        sp.csc_matrix(A - x * sp.eye(n, format="csc")),
         permc_spec="MMD_AT_PLUS_A",
-        diag_pivot_thresh=0.1,
+        diag_pivot_thresh=0.0,
         options={"SymmetricMode": True},
     )
-    op = sla.LinearOperator((n, n), matvec=lu.solve, dtype=np.float64)
-    evals, evecs = sla.eigsh(A, k=m, sigma=sigma, OPinv=op, tol=tol, ncv=min(n, 2 * m + 1), v0=v0)
-    order = np.argsort(evals)
-    return evals[order], evecs[:, order]
+
+
+def _count_below(A, x: float) -> int:
+    """Number of eigenvalues of ``A`` below ``x`` (Sylvester's law of inertia on ``A - x I = L D L^T``)."""
+    lu = _ldlt(A, x)
+    if not np.array_equal(lu.perm_r, lu.perm_c):
+        raise _SliceError("LU used off-diagonal pivots; inertia unavailable")
+    return int((lu.U.diagonal() < 0).sum())
+
+
+class _ShiftInvert:
+    """Shift-invert operator ``(A - sigma I)^-1`` from a sparse LDL^T (symmetric fill-reducing ordering; no
+    pivoting is accurate for shifted Laplacians in practice, and the residual check guards it), optionally
+    restricted to the orthogonal complement of known eigenvectors (deflation)."""
+
+    def __init__(self, A, sigma: float):
+        self.A, self.sigma, self.n = A, sigma, A.shape[0]
+        self.solve = _ldlt(A, sigma).solve
+
+    def nearest(self, m: int, tol: float, v0: np.ndarray, known: np.ndarray | None = None):
+        """The ``m`` eigenpairs nearest to sigma (orthogonal to ``known`` columns if given), ascending."""
+        if known is None:
+            matvec = self.solve
+        else:
+
+            def matvec(x):
+                x = x - known @ (known.T @ x)
+                y = self.solve(x)
+                return y - known @ (known.T @ y)
+
+            v0 = v0 - known @ (known.T @ v0)
+        op = sla.LinearOperator((self.n, self.n), matvec=matvec, dtype=np.float64)
+        m = min(m, self.n - 1 - (0 if known is None else known.shape[1]))
+        evals, evecs = sla.eigsh(self.A, k=m, sigma=self.sigma, OPinv=op, tol=tol, ncv=min(self.n, 2 * m + 1), v0=v0)
+        order = np.argsort(evals)
+        return evals[order], evecs[:, order]
 
 
 def _trusted_count(evals: np.ndarray) -> int:
@@ -339,49 +397,66 @@ def _trusted_count(evals: np.ndarray) -> int:
     return int(gaps[-1]) + 1 if gaps.size else 0
 
 
-def _sliced_eigsh(A, k: int, scale: float, slice_size: int, tol: float, v0) -> tuple[np.ndarray, np.ndarray]:
-    """Lowest ``k`` eigenpairs by consecutive shift-invert slices (spectrum slicing).
+def _sliced_eigsh(A, k: int, scale: float, slice_size: int, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Lowest ``k`` eigenpairs by consecutive, verified shift-invert slices (spectrum slicing).
 
-    Slice 0 takes the lowest pairs at a shift just below 0. Each next slice is centred so that its nearest
-    eigenvalues reach back below ``b``, the boundary (a gap midpoint) up to which everything is known: the
-    ``m`` eigenvalues nearest to a shift are all eigenvalues within some radius, so if the lowest one found
-    is below ``b``, nothing between ``b`` and the new boundary is missed. Only eigenvalues above ``b``
-    are taken from the new slice and the last cluster of each slice is left to the next one, so a multiple
-    eigenvalue is never split. The density of eigenvalues (almost constant on a surface, Weyl's law)
-    places the next shift.
+    All eigenvalues below a boundary ``b`` (initially -inf) are known. A slice asks ARPACK for the ``m``
+    eigenvalues nearest to a shift placed above ``b`` (the first one just below 0; the next ones from the
+    density of eigenvalues so far, which is almost constant on a surface by Weyl's law, so that the slice
+    reaches back below ``b``). Of the result it keeps the eigenvalues in ``[b, b')``, where ``b'`` is the
+    midpoint of the gap before the last cluster (a multiple eigenvalue is never split between slices), and
+    checks with Sylvester's law of inertia (an LDL^T of ``A - b' I``) that exactly ``count + kept``
+    eigenvalues lie below ``b'``. Single-vector Lanczos finds only one direction of an exactly multiple
+    eigenvalue (symmetric meshes: spheres, tori), so missing eigenvalues are searched again orthogonally to
+    the found ones (deflation) until the count is right. A slice that does not reach back below ``b`` is
+    retried with its shift closer to ``b`` and more pairs.
     """
     n = A.shape[0]
-    first = min(k, slice_size)
-    evals, evecs = _shift_invert(A, -EIGSH_SHIFT_REL * scale, first, tol, v0)
-    if first == k:
-        return evals, evecs
-    top = _trusted_count(evals)
-    if top == 0:
-        raise _SliceGap("first slice is a single cluster")
-    bound = 0.5 * (evals[top - 1] + evals[top])
-    vals, vecs = [evals[:top]], [evecs[:, :top]]
-    count = top
-    density = top / max(bound, 1e-300)
+    rng = np.random.default_rng(EIGSH_SEED)
+    vals, vecs = [], []
+    count, bound, density = 0, -np.inf, None
     while count < k:
         need = k - count
-        overlap = int(np.ceil(EIGSH_SLICE_OVERLAP * slice_size))
-        # Take the rest in one slice when it is at most 1.5 slices, else one full slice.
-        m = need + overlap + 2 if need + overlap + 2 <= 1.5 * slice_size else slice_size
-        m = min(m, n - 1)
-        sigma = bound + (0.5 * m - overlap) / density
-        evals, evecs = _shift_invert(A, sigma, m, tol, v0)
-        if not evals[0] < bound:
-            raise _SliceGap(f"slice at {sigma:.4g} starts above the boundary {bound:.4g}")
-        top = _trusted_count(evals) if count + m < n else m
-        new = np.flatnonzero(evals >= bound)
-        new = new[new < top]
-        if new.size == 0:
-            raise _SliceGap("slice added no eigenvalue")
+        overlap = int(np.ceil(EIGSH_SLICE_OVERLAP * slice_size)) if count else 0
+        # Take the rest in one slice when it is at most 1.5 slices (plus a margin so that the k-th eigenvalue
+        # is not in the dropped last cluster), else one full slice.
+        wanted = need + overlap + max(EIGSH_SLICE_MARGIN, int(np.ceil(EIGSH_SLICE_OVERLAP * need)))
+        m = min(wanted if wanted <= 1.5 * slice_size else slice_size, n - 1)
+        offset = None if count == 0 else (0.5 * m - overlap) / density
+        for _ in range(EIGSH_SLICE_RETRIES):
+            sigma = -EIGSH_SHIFT_REL * scale if count == 0 else bound + offset
+            shift_invert = _ShiftInvert(A, sigma)
+            evals, evecs = shift_invert.nearest(m, tol, rng.standard_normal(n))
+            reaches_back = count == 0 or evals[0] < bound
+            if reaches_back and np.count_nonzero(evals[: _trusted_count(evals)] >= bound):
+                break
+            if not reaches_back:
+                offset *= 0.5  # the spectrum just above b is sparser than expected: move the shift closer
+            m = min(int(1.5 * m) + 1, n - 1)  # (and when all new eigenvalues were in the last cluster)
+        else:
+            raise _SliceError(f"no spectral slice reached back below {bound:.4g}")
+        for _ in range(EIGSH_DEFLATION_ROUNDS):
+            top = _trusted_count(evals)
+            new = np.flatnonzero(evals >= bound)
+            new = new[new < top]
+            new_bound = 0.5 * (evals[top - 1] + evals[top])
+            missing = _count_below(A, new_bound) - (count + new.size)
+            if missing == 0:
+                break
+            if missing < 0 or evals.shape[0] >= n - 1:
+                raise _SliceError(f"inconsistent eigenvalue count in the slice above {bound:.4g}")
+            more_vals, more_vecs = shift_invert.nearest(
+                missing + EIGSH_SLICE_MARGIN, tol, rng.standard_normal(n), known=evecs
+            )
+            order = np.argsort(np.r_[evals, more_vals], kind="stable")
+            evals = np.r_[evals, more_vals][order]
+            evecs = np.hstack([evecs, more_vecs])[:, order]
+        else:
+            raise _SliceError(f"eigenvalues above {bound:.4g} still missing after deflation")
         vals.append(evals[new])
         vecs.append(evecs[:, new])
         count += new.size
-        new_bound = 0.5 * (evals[top - 1] + evals[top]) if top < m else evals[-1]
-        density = new.size / max(new_bound - bound, 1e-300)
+        density = new.size / max(new_bound - max(bound, 0.0), 1e-300)
         bound = new_bound
     return np.concatenate(vals)[:k], np.concatenate(vecs, axis=1)[:, :k]
 
@@ -406,7 +481,9 @@ def _set_component_indicators(L_k, m_k: np.ndarray, evals: np.ndarray, phi: np.n
     areas = np.bincount(labels, weights=m_k, minlength=n_comp)
     first_vertex = np.full(n_comp, labels.shape[0])
     np.minimum.at(first_vertex, labels, np.arange(labels.shape[0]))
-    order = np.lexsort((first_vertex, -areas))[:n_zero]
+    # Areas equal up to round-off (e.g. translated copies) count as ties.
+    area_key = np.round(areas / areas.max(), AREA_TIE_DECIMALS)
+    order = np.lexsort((first_vertex, -area_key))[:n_zero]
     for j, comp in enumerate(order):
         phi[:, j] = (labels == comp) / np.sqrt(areas[comp])
     evals[:n_zero] = 0.0

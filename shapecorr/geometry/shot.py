@@ -65,6 +65,7 @@ neighbour pairs (``np.bincount`` accumulation), with no Python loop over vertice
 
 from __future__ import annotations
 
+import igl
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -96,6 +97,9 @@ LEGACY_AZIMUTH_WRAP = 28
 #: Neighbours closer than this fraction of the support radius are the query point itself (duplicated
 #: vertices); they have no direction and are skipped in the histogram, as in the original code.
 COINCIDENT_REL_TOL = 1e-6
+#: Neighbour pairs processed at once in the histogram step (bounds the memory of the temporaries; not a
+#: published parameter, any value gives the same result).
+PAIR_BLOCK = 1 << 16
 
 _AZIMUTH_SPAN = 2.0 * np.pi / N_AZIMUTH
 _ELEVATION_SPAN = np.pi / N_ELEVATION
@@ -259,8 +263,6 @@ def vertex_normals_for_shot(verts: np.ndarray, faces: np.ndarray, normals="unifo
             raise ConfigError(
                 f"SHOT normals must be one of {_NORMAL_WEIGHTINGS} or an (n, 3) array, got {normals!r}"
             )
-        import igl  # local import: libigl is only needed here
-
         weighting = (
             igl.PER_VERTEX_NORMALS_WEIGHTING_TYPE_UNIFORM
             if normals == "uniform"
@@ -325,15 +327,52 @@ def _histograms(
     azimuth_wrap: int,
     wrap_cosine: bool,
 ) -> np.ndarray:
-    """Normalized SHOT rows (n, 32 (n_bins + 1)) float32 from the frames (n, 3, 3) and the support pairs."""
+    """Normalized SHOT rows (n, 32 (n_bins + 1)) float32 from the frames (n, 3, 3) and the support pairs
+    (sorted by centre ``i``)."""
     n = v.shape[0]
-    slots = n_bins + 1
-    length = N_SECTORS * slots
-    n_support = np.bincount(i, minlength=n)
-    described = has_frame & (n_support >= min_neighbors)
-
+    length = N_SECTORS * (n_bins + 1)
+    described = has_frame & (np.bincount(i, minlength=n) >= min_neighbors)
     keep = described[i] & (d > COINCIDENT_REL_TOL * radius)
     i, j, d = i[keep], j[keep], d[keep]
+
+    # Blocks of consecutive centres with about PAIR_BLOCK pairs each bound the temporaries' memory
+    # (a few hundred bytes per pair); a loop over blocks, not over vertices.
+    first_pair = np.searchsorted(i, np.arange(n + 1))
+    cuts = np.searchsorted(first_pair, np.arange(PAIR_BLOCK, i.size, PAIR_BLOCK), side="right") - 1
+    bounds = np.unique(np.concatenate([[0], cuts, [n]]))
+    desc = np.zeros((n, length))
+    for lo, hi in zip(bounds[:-1], bounds[1:]):
+        block = slice(first_pair[lo], first_pair[hi])
+        desc[lo:hi] = _histogram_block(
+            v, nrm, frames, i[block], j[block], d[block], lo, hi - lo, radius, n_bins, azimuth_wrap,
+            wrap_cosine,
+        )
+
+    norm = np.linalg.norm(desc, axis=1, keepdims=True)
+    desc = np.divide(desc, norm, out=np.zeros_like(desc), where=norm > 0)
+    if not np.isfinite(desc).all():
+        raise NumericalError("SHOT produced NaN/Inf values (degenerate neighbourhoods?)")
+    return desc.astype(np.float32)
+
+
+def _histogram_block(
+    v: np.ndarray,
+    nrm: np.ndarray,
+    frames: np.ndarray,
+    i: np.ndarray,
+    j: np.ndarray,
+    d: np.ndarray,
+    first: int,
+    n_rows: int,
+    radius: float,
+    n_bins: int,
+    azimuth_wrap: int,
+    wrap_cosine: bool,
+) -> np.ndarray:
+    """Unnormalized histograms (n_rows, 32 (n_bins + 1)) float64 of the centres first .. first + n_rows - 1,
+    from their pairs (i, j) at distances d."""
+    slots = n_bins + 1
+    length = N_SECTORS * slots
     q = v[j] - v[i]
     frame = frames[i]  # (m, 3, 3): rows x, y, z
     local = np.einsum("mab,mb->ma", frame, q)
@@ -401,15 +440,9 @@ def _histograms(
     slot_idx.append(sector * slots + step)
     weights.append(main_w)
 
-    flat = np.concatenate(rows) * length + np.concatenate(slot_idx)
-    desc = np.bincount(flat, weights=np.concatenate(weights), minlength=n * length)
-    desc = desc.astype(np.float64, copy=False).reshape(n, length)  # bincount of nothing is int64
-
-    norm = np.linalg.norm(desc, axis=1, keepdims=True)
-    desc = np.divide(desc, norm, out=np.zeros_like(desc), where=norm > 0)
-    if not np.isfinite(desc).all():
-        raise NumericalError("SHOT produced NaN/Inf values (degenerate neighbourhoods?)")
-    return desc.astype(np.float32)
+    flat = (np.concatenate(rows) - first) * length + np.concatenate(slot_idx)
+    hist = np.bincount(flat, weights=np.concatenate(weights), minlength=n_rows * length)
+    return hist.astype(np.float64, copy=False).reshape(n_rows, length)  # bincount of nothing is int64
 
 
 def _validate_mesh(verts, faces) -> tuple[np.ndarray, np.ndarray]:
@@ -451,16 +484,16 @@ def _validate_params(radius, n_bins, lrf_radius, min_neighbors, min_lrf_neighbor
 
 def _total_area(v: np.ndarray, f: np.ndarray) -> float:
     """Total surface area; raises if it is zero (no radius can be derived from it)."""
-    import igl  # local import: libigl is only needed here
-
     area = 0.5 * float(igl.doublearea(v, f).sum()) if f.size else 0.0
     if not area > 0:
-        raise InvalidMeshError("SHOT: the mesh has zero total area; give an explicit radius")
+        raise InvalidMeshError(
+            "SHOT: the mesh has zero total area, which the default radius and legacy=True scale by"
+        )
     return area
 
 
 def _neighbor_pairs(v: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """All ordered pairs (i, j), i != j, with |v_j - v_i| <= radius.
+    """All ordered pairs (i, j), i != j, with |v_j - v_i| <= radius, sorted by i.
 
     Returns
     -------
@@ -471,6 +504,8 @@ def _neighbor_pairs(v: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarra
     pairs = cKDTree(v).query_pairs(radius, output_type="ndarray")  # i < j only
     i = np.concatenate([pairs[:, 0], pairs[:, 1]]).astype(np.int64)
     j = np.concatenate([pairs[:, 1], pairs[:, 0]]).astype(np.int64)
+    order = np.argsort(i, kind="stable")
+    i, j = i[order], j[order]
     d = np.linalg.norm(v[j] - v[i], axis=1)
     return i, j, d
 

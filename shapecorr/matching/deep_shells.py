@@ -699,11 +699,13 @@ def refine_deep_shells(
         raise ConfigError("refine_deep_shells: the initial maps must have one entry per vertex of X and of Y")
     incl = config.sigmoid_inclusive
     with torch.no_grad():
+        # float64 copies once (not per level) for the normal equations
         phi_x64 = shape_x.evecs[:, : max(ks)].to(torch.float64)
+        phi_y64 = shape_y.evecs[:, : max(ks)].to(torch.float64)
         for k in ks:
             shell_x = _shell(shape_x, k, config.smooth_x, incl)
             shell_y = _shell(shape_y, k, "sigmoid", incl)
-            fmap, tau = deformation_from_pairs(phi_x64[:, :k], shape_y.evecs[:, :k], shell_x, shell_y,
+            fmap, tau = deformation_from_pairs(phi_x64[:, :k], phi_y64[:, :k], shell_x, shell_y,
                                                map_x_to_y, map_y_to_x, config.ridge)
             fmap, tau = fmap.to(shape_x.evecs.dtype), tau.to(shape_x.evecs.dtype)
             emb_x, emb_y, deformed = _full_embedding(shape_x, shape_y, k, fmap, tau, config.refine_fac_spec,

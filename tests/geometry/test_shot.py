@@ -14,6 +14,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+import shapecorr.geometry.shot as shot_module
 from shapecorr.errors import ConfigError, InvalidMeshError
 from shapecorr.geometry.normals import vertex_normals
 from shapecorr.geometry.shot import (
@@ -91,6 +92,15 @@ def test_default_radius_is_five_percent_of_sqrt_area(blob):
     assert not np.allclose(shot(v, f, radius=1.5 * radius), shot(v, f), atol=1e-3)
 
 
+@pytest.mark.parametrize("block", [7, 1000])
+def test_pair_blocking_does_not_change_the_result(blob, monkeypatch, block):
+    # 7 pairs is smaller than one vertex's neighbourhood, so blocks hold single vertices too.
+    v, f = blob
+    expected = shot(v, f)
+    monkeypatch.setattr(shot_module, "PAIR_BLOCK", block)
+    np.testing.assert_array_equal(shot(v, f), expected)
+
+
 def test_torch_input_gives_tensor(blob):
     v, f = blob
     out = shot(torch.from_numpy(v).float(), torch.from_numpy(f))
@@ -104,7 +114,8 @@ def test_normals_options(blob):
     np.testing.assert_allclose(np.linalg.norm(uniform, axis=1), 1.0, atol=1e-9)
     # "area" is the area-weighted sum, the same as the project's torch vertex normals.
     area = vertex_normals_for_shot(v, f, "area")
-    np.testing.assert_allclose(area, vertex_normals(torch.from_numpy(v), torch.from_numpy(f)).numpy(), atol=1e-9)
+    torch_area = vertex_normals(torch.from_numpy(v), torch.from_numpy(f)).numpy()
+    np.testing.assert_allclose(area, torch_area, atol=1e-9)
     # Passing the normals explicitly is the same as naming them.
     np.testing.assert_allclose(shot(v, f, normals=uniform), shot(v, f), atol=1e-6)
     assert not np.allclose(shot(v, f, normals="area"), shot(v, f), atol=1e-4)
@@ -115,7 +126,8 @@ def test_local_frames_are_right_handed_and_oriented():
     radius = 0.2 * math.sqrt(_area(v, f))
     frames, valid = shot_lrf(v, radius)
     assert valid.all()
-    np.testing.assert_allclose(frames @ frames.transpose(0, 2, 1), np.broadcast_to(np.eye(3), frames.shape), atol=1e-9)
+    identity = np.broadcast_to(np.eye(3), frames.shape)
+    np.testing.assert_allclose(frames @ frames.transpose(0, 2, 1), identity, atol=1e-9)
     np.testing.assert_allclose(np.linalg.det(frames), 1.0, atol=1e-9)
     # Sign rule: each of x and z has at least as many neighbours on its positive side as on its negative.
     tree = cKDTree(v)
@@ -130,7 +142,8 @@ def test_local_frames_are_right_handed_and_oriented():
 def test_frame_z_follows_the_inward_normal_on_a_convex_surface():
     mesh = trimesh.creation.icosphere(subdivisions=3)
     rng = np.random.default_rng(5)
-    v = np.asarray(mesh.vertices) * np.array([1.3, 1.0, 0.75]) + rng.normal(scale=1e-3, size=mesh.vertices.shape)
+    noise = rng.normal(scale=1e-3, size=mesh.vertices.shape)
+    v = np.asarray(mesh.vertices) * np.array([1.3, 1.0, 0.75]) + noise
     f = np.asarray(mesh.faces)
     frames, valid = shot_lrf(v, 0.1 * math.sqrt(_area(v, f)))
     outward = vertex_normals_for_shot(v, f)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import pickle
 import subprocess
 import sys
 from pathlib import Path
@@ -68,6 +69,7 @@ def _cfg(tiny, out: Path, *overrides: str):
                 f"output_dir={out}",
                 "progress=false",
                 "n_examples=2",
+                "data.operators.n_eig=30",  # small eigenbases: fast cache fill
                 *overrides,
             ],
         )
@@ -108,22 +110,35 @@ def test_maps_dir_mode_reproduces_errors(tiny, tmp_path):
         for b in NAMES:
             if a != b:
                 np.savetxt(src / f"{a}__{b}.txt", (np.arange(642) * 7) % 642, fmt="%d")
-    first = evaluate(_cfg(tiny, tmp_path / "eval1", f"maps_dir={src}"))
+    first = evaluate(_cfg(tiny, tmp_path / "eval1", f"maps_dir={src}", "n_examples=0"))
     assert first["mean_geodesic_error"] > 0.1
     # the maps evaluate.py wrote are read back (as .npy, and one-based as .map) to the same numbers
-    second = evaluate(_cfg(tiny, tmp_path / "eval2", f"maps_dir={tmp_path / 'eval1' / 'maps'}", "maps_extension=npy"))
+    second = evaluate(_cfg(tiny, tmp_path / "eval2", f"maps_dir={tmp_path / 'eval1' / 'maps'}", "maps_extension=npy", "n_examples=0"))
     assert second["mean_geodesic_error"] == first["mean_geodesic_error"]
     one_based = tmp_path / "one_based"
     one_based.mkdir()
     for f in src.glob("*.txt"):
         np.savetxt(one_based / f"{f.stem}.map", np.loadtxt(f, dtype=np.int64) + 1, fmt="%d")
-    third = evaluate(_cfg(tiny, tmp_path / "eval3", f"maps_dir={one_based}", "maps_extension=map", "maps_one_based=true"))
+    third = evaluate(_cfg(tiny, tmp_path / "eval3", f"maps_dir={one_based}", "maps_extension=map", "maps_one_based=true",
+                          "n_examples=0"))
     assert third["mean_geodesic_error"] == first["mean_geodesic_error"]
 
 
 def test_descriptor_nn_in_parallel_workers(tiny, tmp_path):
+    """Two worker processes; fork keeps the test fast, and spawn (the default) only needs the dataset and the
+    matcher to pickle, which is checked here directly."""
+    import hydra
+
+    from shapecorr.matching.baselines import DescriptorNN
+
+    cfg = _cfg(tiny, tmp_path / "unused")
+    shapes = hydra.utils.instantiate(cfg.data, _convert_="object").shapes("test")
+    clone = pickle.loads(pickle.dumps(shapes))
+    assert clone.names == shapes.names and clone.root == shapes.root
+    assert pickle.loads(pickle.dumps(DescriptorNN("hks"))).descriptor == "hks"
     out = tmp_path / "hks"
-    metrics = evaluate(_cfg(tiny, out, "model=descriptor_nn", "model.descriptor=hks", "workers=2", "max_pairs=4"))
+    metrics = evaluate(_cfg(tiny, out, "model=descriptor_nn", "model.descriptor=hks", "workers=2", "max_pairs=4",
+                            "start_method=fork"))
     assert metrics["n_pairs"] == 4
     assert 0.0 < metrics["mean_geodesic_error"] < 1.0
     assert metrics["run"]["workers"] == 2
@@ -150,24 +165,33 @@ def test_resume_skips_done_pairs(tiny, tmp_path):
     assert exc.value.code == 2
 
 
-def test_size_mismatch_is_a_clear_cli_error(tiny, tmp_path):
-    root, cache = tiny
+def test_size_mismatch_is_a_clear_error(tiny, tmp_path, capsys):
     maps = tmp_path / "maps"
     maps.mkdir()
     for a in NAMES:
         for b in NAMES:
             if a != b:
                 np.savetxt(maps / f"{a}__{b}.txt", np.zeros(600, dtype=np.int64), fmt="%d")  # 600 != 642
+    with pytest.raises(SystemExit) as exc:
+        evaluate(_cfg(tiny, tmp_path / "out", f"maps_dir={maps}"))
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "Traceback" not in err
+    assert str(maps) in err and "__" in err and ".txt" in err  # names the file
+    assert "600 entries" in err and "642 vertices" in err
+
+
+def test_entry_point_composes_the_configs(tiny, tmp_path):
+    """The root ``evaluate.py`` finds configs/evaluate.yaml and its groups (no run: ``--cfg job``)."""
+    root, cache = tiny
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.run(
-        [sys.executable, str(REPO / "evaluate.py"), f"maps_dir={maps}", "data=folder", f"data.root={root}",
-         f"paths.cache_dir={cache}", f"output_dir={tmp_path / 'out'}", "progress=false"],
+        [sys.executable, str(REPO / "evaluate.py"), "--cfg", "job", "model=descriptor_nn", "data=folder",
+         f"data.root={root}", f"output_dir={tmp_path}"],
         capture_output=True, text=True, cwd=tmp_path, env=env, timeout=120,
     )
-    assert proc.returncode == 2, proc.stderr
-    assert "Traceback" not in proc.stderr
-    assert "error:" in proc.stderr and "__" in proc.stderr and ".txt" in proc.stderr
-    assert "600 entries" in proc.stderr and "642 vertices" in proc.stderr
+    assert proc.returncode == 0, proc.stderr
+    assert "shapecorr.matching.baselines.DescriptorNN" in proc.stdout and "descriptor: wks" in proc.stdout
 
 
 def test_nothing_to_evaluate_is_a_config_error(tiny, tmp_path, capsys):

@@ -1,5 +1,5 @@
 """Surface extraction and clean-up for the synthetic creatures: implicit field -> marching cubes -> a
-watertight, manifold, genus-0 triangle mesh; isotropic remeshing to a vertex budget; topology checks.
+watertight, manifold, genus-0 triangle mesh; topology checks.
 """
 
 from __future__ import annotations
@@ -16,27 +16,28 @@ from shapecorr.errors import ConfigError, InvalidMeshError
 GRID_PADDING_CELLS = 3
 #: Coarse-to-fine sampling of implicit fields: ratio of the coarse grid spacing to the fine one.
 COARSE_FACTOR = 4
-#: Fine samples are computed where the coarse value is below SAFETY x (the largest change of a 1-Lipschitz
-#: field between a fine point and its nearest coarse sample); the creature fields are Lipschitz with a
-#: constant below ~1.2 (round cones), the margin covers it.
+#: Default Lipschitz bound of the sampled fields: fine samples are computed where the coarse value is below
+#: this times the distance to the nearest coarse sample. The creature fields have a constant below ~1.2
+#: (round cones with varying radius); the margin covers it.
 NARROW_BAND_SAFETY = 1.5
-#: Relative tolerance on the vertex count reached by :func:`remesh_to_count` (the target is approached
-#: by rescaling the edge length, remesh_botsch has no exact count control).
-REMESH_COUNT_TOL = 0.05
-#: Extra calls of remesh_botsch with a corrected edge length when the count is off by more than the tolerance.
-REMESH_MAX_RETRIES = 3
 #: Equilateral-triangle relation on a closed surface: F ~ 2 V, so area / V = 2 * (sqrt(3) / 4) * edge^2.
 _AREA_PER_VERTEX_FACTOR = np.sqrt(3.0) / 2.0
 
 
 def extract_surface(
-    field, lower: np.ndarray, upper: np.ndarray, step: float, coarse_factor: int = COARSE_FACTOR, chunk: int = 200_000
+    field,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    step: float,
+    coarse_factor: int = COARSE_FACTOR,
+    lipschitz: float = NARROW_BAND_SAFETY,
+    chunk: int = 200_000,
 ):
     """Zero level set of an implicit function (negative inside) as a triangle mesh.
 
     The field is first sampled on a grid ``coarse_factor`` times coarser; fine grid points whose nearest
-    coarse sample is far from the surface (more than :data:`NARROW_BAND_SAFETY` times the largest possible
-    change of a 1-Lipschitz field over that distance) keep the coarse value, whose sign is then certain.
+    coarse sample is far from the surface (its value exceeds ``lipschitz`` times the distance to that
+    sample) keep the coarse value, whose sign is then certain.
     Only the narrow band around the surface is evaluated at full resolution, so every cell crossed by
     the surface has exact corner values.
 
@@ -50,6 +51,8 @@ def extract_surface(
         Grid spacing.
     coarse_factor : int
         Ratio of the coarse to the fine grid spacing (1 disables the narrow band).
+    lipschitz : float
+        Upper bound of the field's Lipschitz constant (sets the width of the narrow band).
     chunk : int
         Points evaluated per call of ``field`` (bounds memory).
 
@@ -79,7 +82,7 @@ def extract_surface(
                for n, c in zip(dims, coarse_idx)]
     volume = coarse[np.ix_(*nearest)]
     # A fine point is at most half a coarse cell diagonal away from its nearest coarse sample.
-    band = NARROW_BAND_SAFETY * 0.5 * coarse_factor * step * np.sqrt(3.0)
+    band = lipschitz * 0.5 * coarse_factor * step * np.sqrt(3.0)
     near = np.nonzero(np.abs(volume) <= band)
     if len(near[0]):
         points = np.column_stack([fine_axes[d][near[d]] for d in range(3)])
@@ -218,46 +221,3 @@ def _vertex_manifold(faces: np.ndarray, n_verts: int) -> bool:
 def edge_length_for_count(area: float, n_verts: int) -> float:
     """Edge length of an equilateral triangulation of a closed surface of ``area`` with ``n_verts`` vertices."""
     return float(np.sqrt(area / (n_verts * _AREA_PER_VERTEX_FACTOR)))
-
-
-def remesh_to_count(
-    verts: np.ndarray, faces: np.ndarray, n_verts: int, iterations: int = 10, tol: float = REMESH_COUNT_TOL
-) -> tuple[np.ndarray, np.ndarray]:
-    """Isotropic remeshing (Botsch & Kobbelt 2004, gpytoolbox.remesh_botsch) to about ``n_verts`` vertices.
-
-    The target edge length comes from the area; when the count misses by more than ``tol`` the edge
-    length is rescaled by ``sqrt(count / n_verts)`` and remeshing restarts from the input (at most
-    :data:`REMESH_MAX_RETRIES` times). Deterministic for identical input.
-
-    Parameters
-    ----------
-    verts : (n, 3) float
-    faces : (f, 3) int
-    n_verts : int
-    iterations : int
-        remesh_botsch iterations (its default is 10).
-
-    Returns
-    -------
-    verts : (n', 3) float64, with ``|n' - n_verts| <= tol * n_verts`` in practice
-    faces : (f', 3) int64
-    """
-    import gpytoolbox
-
-    if n_verts < 4:
-        raise ConfigError(f"remeshing target must be at least 4 vertices, got {n_verts}")
-    v = np.ascontiguousarray(verts, np.float64)
-    f = np.ascontiguousarray(faces, np.int64)
-    area = float(trimesh.triangles.area(v[f]).sum())
-    h = edge_length_for_count(area, n_verts)
-    best = None
-    for _ in range(REMESH_MAX_RETRIES + 1):
-        out_v, out_f = gpytoolbox.remesh_botsch(v, f.astype(np.int32), i=iterations, h=h, project=True)
-        count = len(out_v)
-        if best is None or abs(count - n_verts) < abs(len(best[0]) - n_verts):
-            best = (out_v, out_f)
-        if abs(count - n_verts) <= tol * n_verts:
-            break
-        h *= np.sqrt(count / n_verts)
-    out_v, out_f = best
-    return np.asarray(out_v, np.float64), np.asarray(out_f, np.int64)

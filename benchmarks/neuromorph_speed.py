@@ -1,0 +1,267 @@
+"""Speed and memory of one NeuroMorph training step on CPU (or any device), ~2000 vertices per shape.
+
+One step = features of both shapes (forward), softmax soft maps, interpolator for T + 1 time steps,
+registration + ARAP (both directions between consecutive frames) + geodesic distortion losses, backward.
+Measured for T = 0 and T = 7, each in a fresh subprocess (so peak memory is per configuration), as the
+median of ``--repeats`` steps after ``--warmup`` steps, for two variants in the same run:
+
+* ``fast``: the shapecorr implementation (restructured EdgeConv on deduplicated edges, custom backward of
+  the geodesic loss, detached ARAP rotations, "both-sides" ARAP);
+* ``naive``: the same model evaluated the way the original code does it: per-edge EdgeConv MLP on the
+  face-listed edges (every interior edge twice per direction) with torch's scatter autograd, the geodesic
+  loss through plain autograd, "average" ARAP differentiated through the SVD with ``2 * face counts``
+  weights. Its ratio to ``fast`` is measured on the same machine in the same run.
+
+Shapes: by default two synthetic bumpy spheres decimated with libigl to ~2000 vertices (different
+triangulations, like independently remeshed shapes); with ``--faust-root`` (or ``$SHAPECORR_FAUST_R``) two
+FAUST_r shapes decimated to ~2000 vertices instead. Geodesic matrices: heat method
+(``shapecorr.geometry.geodesics``), only their size matters for the timing.
+
+The machine is shared: wall-clock medians are reported together with the process CPU time per step and
+the load average before and after, so that contention is visible.
+
+Usage::
+
+    python benchmarks/neuromorph_speed.py [--threads 2] [--repeats 5] [--faust-root DIR]
+        [--out benchmarks/results/neuromorph_speed.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import igl
+import numpy as np
+import torch
+
+from shapecorr.data.shape import make_shape
+from shapecorr.geometry.geodesics import geodesic_distances
+from shapecorr.geometry.mesh_graph import undirected_edges
+from shapecorr.losses.arap import arap_sequence_loss
+from shapecorr.losses.geodesic_distortion import geodesic_distortion_loss
+from shapecorr.losses.registration import registration_loss
+from shapecorr.matching.softmax import DEFAULT_SIGMA, softmax_soft_maps
+from shapecorr.nn.neuromorph import NeuroMorphFeatureNet, NeuroMorphInterpolator, interpolation_times
+
+#: Target number of vertices (NeuroMorph trains on 2000-vertex FAUST_r remeshes, methods-digest §4.1).
+TARGET_VERTS = 2000
+#: Icosphere subdivision level of the synthetic shapes before decimation (2562 vertices).
+SYNTH_SUBDIVISIONS = 4
+#: Amplitude (relative to the radius) and number of random Gaussian bumps of the synthetic shapes.
+SYNTH_BUMP_AMPLITUDE, SYNTH_BUMPS = 0.25, 12
+#: Published per-pair training time of the original code at 2000 vertices, T = 0 (task brief) and targets.
+ORIGINAL_SECONDS_T0 = 5.0
+TARGET_SECONDS = {0: 0.5, 7: 1.7}
+
+
+def _decimate(verts: np.ndarray, faces: np.ndarray, n_target: int) -> tuple[np.ndarray, np.ndarray]:
+    """libigl edge-collapse decimation to about ``n_target`` vertices (closed genus-0: f = 2n - 4)."""
+    v, f, _, _ = igl.decimate(np.asfortranarray(verts, dtype=np.float64),
+                              np.asfortranarray(faces, dtype=np.int32), 2 * n_target - 4)
+    used = np.unique(f)
+    remap = np.full(v.shape[0], -1, dtype=np.int64)
+    remap[used] = np.arange(used.size)
+    return v[used], remap[f]
+
+
+def _synthetic_shape(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    rng = np.random.default_rng(seed)
+    sphere = trimesh.creation.icosphere(SYNTH_SUBDIVISIONS)
+    v = np.asarray(sphere.vertices, dtype=np.float64)
+    centers = rng.normal(size=(SYNTH_BUMPS, 3))
+    centers /= np.linalg.norm(centers, axis=1, keepdims=True)
+    heights = rng.uniform(-1.0, 1.0, SYNTH_BUMPS) * SYNTH_BUMP_AMPLITUDE
+    bump = (heights[None] * np.exp(-8.0 * np.square(v[:, None] - centers[None]).sum(-1))).sum(1)
+    v = v * (1.0 + bump)[:, None] + rng.normal(scale=1e-3, size=v.shape)
+    return _decimate(v, np.asarray(sphere.faces), TARGET_VERTS)
+
+
+def _faust_shape(root: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    mesh = trimesh.load(root / "off" / f"{name}.off", process=False)
+    return _decimate(np.asarray(mesh.vertices), np.asarray(mesh.faces), TARGET_VERTS)
+
+
+def _face_listed_edges(faces: torch.Tensor) -> torch.Tensor:
+    """Edges as the original lists them: per face, each triangle edge (duplicates kept)."""
+    return faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+
+
+def _naive_geodesic(pi, dist_x, dist_y):
+    return (pi @ dist_y @ pi.T - dist_x).square().mean()
+
+
+def run_single(args) -> dict:
+    """One (variant, T) configuration: returns timings and peak memory of this process."""
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    cache = Path(args.cache)
+    data = np.load(cache)
+    shapes = []
+    for key in ("x", "y"):
+        s = make_shape(data[f"verts_{key}"], data[f"faces_{key}"], key)
+        shapes.append((s.verts, s.faces, torch.from_numpy(data[f"dist_{key}"]).float()))
+    (vx, fx, dx), (vy, fy, dy) = shapes
+    naive = args.variant == "naive"
+    edges_x, counts_x = undirected_edges(fx, return_counts=True)
+    edges_y = undirected_edges(fy)
+    conv_edges_x = _face_listed_edges(fx) if naive else edges_x
+    conv_edges_y = _face_listed_edges(fy) if naive else edges_y
+    arap_weights = 2.0 * counts_x.float() if naive else None
+    feat_net, interp = NeuroMorphFeatureNet(), NeuroMorphInterpolator()
+    params = list(feat_net.parameters()) + list(interp.parameters())
+    times = interpolation_times(args.steps)
+    rss_setup = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
+    def step():
+        for p in params:
+            p.grad = None
+        fast = not naive
+        feat_x = feat_net(vx, fx, conv_edges_x, fast=fast)
+        feat_y = feat_net(vy, fy, conv_edges_y, fast=fast)
+        pi, pi_inv = softmax_soft_maps(feat_x, feat_y, sigma=DEFAULT_SIGMA, normalize=False)
+        frames = interp.interpolate(vx, pi @ vy, conv_edges_x, times, fast=fast)
+        reg = registration_loss(frames[-1], vy, pi, pi_inv)
+        arap = arap_sequence_loss(
+            torch.cat((vx.unsqueeze(0), frames)), edges_x, arap_weights,
+            mode="average" if naive else "both-sides", detach_rotations=not naive,
+        )
+        geo = _naive_geodesic(pi, dx, dy) if naive else geodesic_distortion_loss(pi, dx, dy)
+        loss = reg + arap + geo
+        loss.backward()
+        return float(loss)
+
+    for _ in range(args.warmup):
+        step()
+    wall, cpu = [], []
+    for _ in range(args.repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        step()
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return {
+        "variant": args.variant,
+        "T": args.steps,
+        "seconds_per_step_median": statistics.median(wall),
+        "seconds_per_step_all": wall,
+        "cpu_seconds_per_step_median": statistics.median(cpu),
+        "peak_rss_mib": peak / 1024.0,
+        "peak_rss_above_setup_mib": (peak - rss_setup) / 1024.0,
+        "n_verts": [int(vx.shape[0]), int(vy.shape[0])],
+        "n_undirected_edges": [int(edges_x.shape[0]), int(edges_y.shape[0])],
+    }
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def _prepare(args) -> dict:
+    """Build the two shapes and their geodesic matrices once; save them for the subprocesses."""
+    root = args.faust_root or os.environ.get("SHAPECORR_FAUST_R")
+    if root:
+        source = {"kind": "FAUST_r", "root_from": "--faust-root" if args.faust_root else "$SHAPECORR_FAUST_R",
+                  "shapes": ["tr_reg_000", "tr_reg_001"]}
+        pair = [_faust_shape(Path(root), name) for name in source["shapes"]]
+    else:
+        source = {"kind": "synthetic bumpy icospheres decimated with igl.decimate", "seeds": [0, 1]}
+        pair = [_synthetic_shape(seed) for seed in (0, 1)]
+    arrays = {}
+    for key, (v, f) in zip(("x", "y"), pair):
+        s = make_shape(v, f, key)
+        arrays[f"verts_{key}"], arrays[f"faces_{key}"] = v, f
+        arrays[f"dist_{key}"] = geodesic_distances(s.verts.numpy(), s.faces.numpy(), method="heat").astype(np.float32)
+    np.savez(args.cache, **arrays)
+    source["n_verts"] = [int(arrays["verts_x"].shape[0]), int(arrays["verts_y"].shape[0])]
+    return source
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--warmup", type=int, default=1)
+    parser.add_argument("--steps", type=int, nargs="+", default=[0, 7], help="values of T")
+    parser.add_argument("--variants", nargs="+", default=["fast", "naive"], choices=["fast", "naive"])
+    parser.add_argument("--faust-root", default=None)
+    parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "neuromorph_speed.json"))
+    parser.add_argument("--cache", default="/tmp/shapecorr_neuromorph_speed.npz")
+    parser.add_argument("--single", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--variant", default="fast", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.single:
+        args.steps = args.steps[0]
+        print(json.dumps(run_single(args)))
+        return
+
+    source = _prepare(args)
+    load_before = os.getloadavg()
+    results = []
+    for steps in args.steps:
+        for variant in args.variants:
+            cmd = [sys.executable, __file__, "--single", "--variant", variant, "--steps", str(steps),
+                   "--threads", str(args.threads), "--repeats", str(args.repeats), "--warmup",
+                   str(args.warmup), "--cache", args.cache]
+            out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+            res = json.loads(out.strip().splitlines()[-1])
+            results.append(res)
+            print(f"T={steps} {variant:5s}: {res['seconds_per_step_median']:.3f} s/step (cpu "
+                  f"{res['cpu_seconds_per_step_median']:.3f} s), peak RSS {res['peak_rss_mib']:.0f} MiB", flush=True)
+    load_after = os.getloadavg()
+    summary = {}
+    for steps in args.steps:
+        by = {r["variant"]: r for r in results if r["T"] == steps}
+        entry = {}
+        if "fast" in by:
+            entry["fast_seconds"] = by["fast"]["seconds_per_step_median"]
+            if steps in TARGET_SECONDS:
+                entry["target_seconds"] = TARGET_SECONDS[steps]
+                entry["meets_target"] = entry["fast_seconds"] <= TARGET_SECONDS[steps]
+            if steps == 0:
+                entry["speedup_vs_original_5s"] = ORIGINAL_SECONDS_T0 / entry["fast_seconds"]
+        if "fast" in by and "naive" in by:
+            entry["speedup_vs_naive_same_run"] = by["naive"]["seconds_per_step_median"] / by["fast"]["seconds_per_step_median"]
+        summary[f"T={steps}"] = entry
+    report = {
+        "benchmark": "neuromorph_speed",
+        "command": " ".join([Path(sys.executable).name, *sys.argv]),
+        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "machine": {"cpu": _cpu_model(), "logical_cpus": os.cpu_count(), "gpu": None,
+                    "torch_threads": args.threads, "load_average_before": load_before,
+                    "load_average_after": load_after},
+        "software": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__},
+        "data": source,
+        "protocol": {"warmup": args.warmup, "repeats": args.repeats, "statistic": "median wall-clock seconds per step",
+                     "step": "feature net on x and y, softmax, interpolator (T+1 frames), registration + ARAP + "
+                             "geodesic losses, backward"},
+        "units": {"seconds_per_step_median": "s", "peak_rss_mib": "MiB (process peak resident set size)"},
+        "summary": summary,
+        "results": results,
+    }
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(report, indent=2) + "\n")
+    print(json.dumps(summary, indent=2))
+
+
+if __name__ == "__main__":
+    main()
