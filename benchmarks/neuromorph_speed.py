@@ -11,6 +11,9 @@ median of ``--repeats`` steps after ``--warmup`` steps, for two variants in the 
   face-listed edges (every interior edge twice per direction) with torch's scatter autograd, the geodesic
   loss through plain autograd, "average" ARAP differentiated through the SVD with ``2 * face counts``
   weights. Its ratio to ``fast`` is measured on the same machine in the same run.
+* ``fast_bf16``: ``fast`` with both networks under ``torch.autocast(dtype=bfloat16)`` (losses in float32):
+  mixed precision, *not* the same numbers; shown because bf16 matrix units make it much faster on CPUs that
+  have them.
 
 Shapes: by default two synthetic bumpy spheres decimated with libigl to ~2000 vertices (different
 triangulations, like independently remeshed shapes); with ``--faust-root`` (or ``$SHAPECORR_FAUST_R``) two
@@ -22,8 +25,8 @@ the load average before and after, so that contention is visible.
 
 Usage::
 
-    python benchmarks/neuromorph_speed.py [--threads 2] [--repeats 5] [--faust-root DIR]
-        [--out benchmarks/results/neuromorph_speed.json]
+    python benchmarks/neuromorph_speed.py [--threads 2 1] [--repeats 5] [--faust-root DIR] [--glibc-no-mmap]
+        [--variants fast naive fast_bf16] [--out benchmarks/results/neuromorph_speed.json]
 """
 
 from __future__ import annotations
@@ -57,11 +60,17 @@ from shapecorr.nn.neuromorph import NeuroMorphFeatureNet, NeuroMorphInterpolator
 TARGET_VERTS = 2000
 #: Icosphere subdivision level of the synthetic shapes before decimation (2562 vertices).
 SYNTH_SUBDIVISIONS = 4
-#: Amplitude (relative to the radius) and number of random Gaussian bumps of the synthetic shapes.
-SYNTH_BUMP_AMPLITUDE, SYNTH_BUMPS = 0.25, 12
+#: Synthetic shapes: number, amplitude (relative to the radius) and sharpness (1 / width^2) of random Gaussian
+#: bumps, and a vertex jitter that makes the decimation differ between the two shapes.
+SYNTH_BUMPS, SYNTH_BUMP_AMPLITUDE, SYNTH_BUMP_SHARPNESS, SYNTH_JITTER = 12, 0.25, 8.0, 1e-3
 #: Published per-pair training time of the original code at 2000 vertices, T = 0 (task brief) and targets.
 ORIGINAL_SECONDS_T0 = 5.0
 TARGET_SECONDS = {0: 0.5, 7: 1.7}
+#: Stages timed inside a step (forward parts, then the whole backward pass).
+STAGES = ("feature_nets_fwd", "softmax_fwd", "interpolator_fwd", "registration_arap_fwd", "geodesic_fwd",
+          "backward")
+#: glibc settings that keep freed large blocks instead of returning them to the OS (no page faults on reuse).
+GLIBC_NO_MMAP_ENV = {"MALLOC_MMAP_THRESHOLD_": str(2**34), "MALLOC_TRIM_THRESHOLD_": str(2**34)}
 
 
 def _decimate(verts: np.ndarray, faces: np.ndarray, n_target: int) -> tuple[np.ndarray, np.ndarray]:
@@ -83,8 +92,8 @@ def _synthetic_shape(seed: int) -> tuple[np.ndarray, np.ndarray]:
     centers = rng.normal(size=(SYNTH_BUMPS, 3))
     centers /= np.linalg.norm(centers, axis=1, keepdims=True)
     heights = rng.uniform(-1.0, 1.0, SYNTH_BUMPS) * SYNTH_BUMP_AMPLITUDE
-    bump = (heights[None] * np.exp(-8.0 * np.square(v[:, None] - centers[None]).sum(-1))).sum(1)
-    v = v * (1.0 + bump)[:, None] + rng.normal(scale=1e-3, size=v.shape)
+    bump = (heights[None] * np.exp(-SYNTH_BUMP_SHARPNESS * np.square(v[:, None] - centers[None]).sum(-1))).sum(1)
+    v = v * (1.0 + bump)[:, None] + rng.normal(scale=SYNTH_JITTER, size=v.shape)
     return _decimate(v, np.asarray(sphere.faces), TARGET_VERTS)
 
 
@@ -126,30 +135,42 @@ def run_single(args) -> dict:
     times = interpolation_times(args.steps)
     rss_setup = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 
-    def step():
+    autocast = args.variant == "fast_bf16"
+
+    def step(parts):
         for p in params:
             p.grad = None
         fast = not naive
-        feat_x = feat_net(vx, fx, conv_edges_x, fast=fast)
-        feat_y = feat_net(vy, fy, conv_edges_y, fast=fast)
+        marks = [time.perf_counter()]
+        with torch.autocast(device_type=vx.device.type, dtype=torch.bfloat16, enabled=autocast):
+            feat_x = feat_net(vx, fx, conv_edges_x, fast=fast).float()
+            feat_y = feat_net(vy, fy, conv_edges_y, fast=fast).float()
+        marks.append(time.perf_counter())
         pi, pi_inv = softmax_soft_maps(feat_x, feat_y, sigma=DEFAULT_SIGMA, normalize=False)
-        frames = interp.interpolate(vx, pi @ vy, conv_edges_x, times, fast=fast)
+        target = pi @ vy
+        marks.append(time.perf_counter())
+        with torch.autocast(device_type=vx.device.type, dtype=torch.bfloat16, enabled=autocast):
+            frames = interp.interpolate(vx, target, conv_edges_x, times, fast=fast).float()
+        marks.append(time.perf_counter())
         reg = registration_loss(frames[-1], vy, pi, pi_inv)
         arap = arap_sequence_loss(
             torch.cat((vx.unsqueeze(0), frames)), edges_x, arap_weights,
             mode="average" if naive else "both-sides", detach_rotations=not naive,
         )
+        marks.append(time.perf_counter())
         geo = _naive_geodesic(pi, dx, dy) if naive else geodesic_distortion_loss(pi, dx, dy)
-        loss = reg + arap + geo
-        loss.backward()
-        return float(loss)
+        marks.append(time.perf_counter())
+        (reg + arap + geo).backward()
+        marks.append(time.perf_counter())
+        for name, t0, t1 in zip(STAGES, marks[:-1], marks[1:]):
+            parts.setdefault(name, []).append(t1 - t0)
 
     for _ in range(args.warmup):
-        step()
-    wall, cpu = [], []
+        step({})
+    wall, cpu, parts = [], [], {}
     for _ in range(args.repeats):
         t0, c0 = time.perf_counter(), time.process_time()
-        step()
+        step(parts)
         wall.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -159,6 +180,7 @@ def run_single(args) -> dict:
         "seconds_per_step_median": statistics.median(wall),
         "seconds_per_step_all": wall,
         "cpu_seconds_per_step_median": statistics.median(cpu),
+        "stage_seconds_median": {k: statistics.median(v) for k, v in parts.items()},
         "peak_rss_mib": peak / 1024.0,
         "peak_rss_above_setup_mib": (peak - rss_setup) / 1024.0,
         "n_verts": [int(vx.shape[0]), int(vy.shape[0])],
@@ -198,11 +220,14 @@ def _prepare(args) -> dict:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, nargs="+", default=[2, 1], help="torch thread counts to run")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--warmup", type=int, default=1)
     parser.add_argument("--steps", type=int, nargs="+", default=[0, 7], help="values of T")
-    parser.add_argument("--variants", nargs="+", default=["fast", "naive"], choices=["fast", "naive"])
+    parser.add_argument("--variants", nargs="+", default=["fast", "naive", "fast_bf16"],
+                        choices=["fast", "naive", "fast_bf16"])
+    parser.add_argument("--glibc-no-mmap", action="store_true",
+                        help="run the steps with MALLOC_MMAP_THRESHOLD_/MALLOC_TRIM_THRESHOLD_ raised (glibc)")
     parser.add_argument("--faust-root", default=None)
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "neuromorph_speed.json"))
     parser.add_argument("--cache", default="/tmp/shapecorr_neuromorph_speed.npz")
@@ -210,45 +235,53 @@ def main(argv=None) -> None:
     parser.add_argument("--variant", default="fast", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.single:
-        args.steps = args.steps[0]
+        args.steps, args.threads = args.steps[0], args.threads[0]
         print(json.dumps(run_single(args)))
         return
 
     source = _prepare(args)
     load_before = os.getloadavg()
     results = []
-    for steps in args.steps:
-        for variant in args.variants:
-            cmd = [sys.executable, __file__, "--single", "--variant", variant, "--steps", str(steps),
-                   "--threads", str(args.threads), "--repeats", str(args.repeats), "--warmup",
-                   str(args.warmup), "--cache", args.cache]
-            out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
-            res = json.loads(out.strip().splitlines()[-1])
-            results.append(res)
-            print(f"T={steps} {variant:5s}: {res['seconds_per_step_median']:.3f} s/step (cpu "
-                  f"{res['cpu_seconds_per_step_median']:.3f} s), peak RSS {res['peak_rss_mib']:.0f} MiB", flush=True)
+    for threads in args.threads:
+        for steps in args.steps:
+            for variant in args.variants:
+                cmd = [sys.executable, __file__, "--single", "--variant", variant, "--steps", str(steps),
+                       "--threads", str(threads), "--repeats", str(args.repeats), "--warmup",
+                       str(args.warmup), "--cache", args.cache]
+                env = dict(os.environ, **(GLIBC_NO_MMAP_ENV if args.glibc_no_mmap else {}))
+                out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
+                res = dict(json.loads(out.strip().splitlines()[-1]), threads=threads)
+                results.append(res)
+                print(f"threads={threads} T={steps} {variant:9s}: {res['seconds_per_step_median']:.3f} s/step "
+                      f"(cpu {res['cpu_seconds_per_step_median']:.3f} s), peak RSS {res['peak_rss_mib']:.0f} MiB",
+                      flush=True)
     load_after = os.getloadavg()
     summary = {}
-    for steps in args.steps:
-        by = {r["variant"]: r for r in results if r["T"] == steps}
-        entry = {}
-        if "fast" in by:
-            entry["fast_seconds"] = by["fast"]["seconds_per_step_median"]
-            if steps in TARGET_SECONDS:
-                entry["target_seconds"] = TARGET_SECONDS[steps]
-                entry["meets_target"] = entry["fast_seconds"] <= TARGET_SECONDS[steps]
-            if steps == 0:
-                entry["speedup_vs_original_5s"] = ORIGINAL_SECONDS_T0 / entry["fast_seconds"]
-        if "fast" in by and "naive" in by:
-            entry["speedup_vs_naive_same_run"] = by["naive"]["seconds_per_step_median"] / by["fast"]["seconds_per_step_median"]
-        summary[f"T={steps}"] = entry
+    for threads in args.threads:
+        for steps in args.steps:
+            by = {r["variant"]: r for r in results if r["T"] == steps and r["threads"] == threads}
+            entry = {}
+            if "fast" in by:
+                entry["fast_seconds"] = by["fast"]["seconds_per_step_median"]
+                if steps in TARGET_SECONDS:
+                    entry["target_seconds"] = TARGET_SECONDS[steps]
+                    entry["meets_target"] = entry["fast_seconds"] <= TARGET_SECONDS[steps]
+                if steps == 0:
+                    entry["speedup_vs_original_5s"] = ORIGINAL_SECONDS_T0 / entry["fast_seconds"]
+            if "fast_bf16" in by:
+                entry["fast_bf16_seconds"] = by["fast_bf16"]["seconds_per_step_median"]
+            if "fast" in by and "naive" in by:
+                naive_s, fast_s = by["naive"]["seconds_per_step_median"], by["fast"]["seconds_per_step_median"]
+                entry["speedup_vs_naive_same_run"] = naive_s / fast_s
+            summary[f"threads={threads} T={steps}"] = entry
     report = {
         "benchmark": "neuromorph_speed",
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         "machine": {"cpu": _cpu_model(), "logical_cpus": os.cpu_count(), "gpu": None,
-                    "torch_threads": args.threads, "load_average_before": load_before,
-                    "load_average_after": load_after},
+                    "torch_threads_runs": args.threads,
+                    "glibc_malloc_env": GLIBC_NO_MMAP_ENV if args.glibc_no_mmap else None,
+                    "load_average_before": load_before, "load_average_after": load_after},
         "software": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__},
         "data": source,
         "protocol": {"warmup": args.warmup, "repeats": args.repeats, "statistic": "median wall-clock seconds per step",

@@ -24,6 +24,9 @@ component of its own). No NaN is ever returned.
 
 from __future__ import annotations
 
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
+
 import igl
 import numpy as np
 import potpourri3d as pp3d
@@ -67,6 +70,7 @@ def geodesic_distances(
     allow_disconnected: bool = False,
     t_coef: float = HEAT_T_COEF,
     robust: bool = True,
+    n_jobs: int = 1,
 ) -> np.ndarray:
     """Geodesic distances from source vertices to all vertices.
 
@@ -84,6 +88,9 @@ def geodesic_distances(
         Heat method time step in units of the squared mean edge length.
     robust : bool
         Heat method on the intrinsic Delaunay tufted cover (potpourri3d's ``use_robust``).
+    n_jobs : int
+        Worker processes sharing the sources (potpourri3d holds the GIL, so threads do not help). Each
+        worker builds its own solver; worth it for many sources (all pairs of a 5k mesh: ~14 s of CPU).
 
     Returns
     -------
@@ -103,6 +110,8 @@ def geodesic_distances(
     n = v.shape[0]
     if method not in GEODESIC_METHODS:
         raise ConfigError(f"geodesic method must be one of {GEODESIC_METHODS}, got {method!r}")
+    if n_jobs < 1:
+        raise ConfigError(f"n_jobs must be >= 1, got {n_jobs}")
     all_pairs = sources is None
     src = np.arange(n) if all_pairs else np.atleast_1d(_as_numpy(sources)).astype(np.int64).ravel()
     if src.size and (src.min() < 0 or src.max() >= n):
@@ -130,7 +139,7 @@ def geodesic_distances(
             remap = np.full(n, -1, dtype=np.int64)
             remap[members] = np.arange(members.size)
             sub_v, sub_f, local = v[members], remap[comp_faces], remap[src[rows]]
-        block = _component_distances(sub_v, sub_f, local, method, t_coef, robust)
+        block = _distances_parallel(sub_v, sub_f, local, method, t_coef, robust, n_jobs)
         if n_comp == 1:
             D[rows] = block
         else:
@@ -143,6 +152,18 @@ def geodesic_distances(
     if np.isnan(D).any():
         raise NumericalError(f"{method} geodesic distances contain NaN")
     return D
+
+
+def _distances_parallel(v, f, sources, method, t_coef, robust, n_jobs: int) -> np.ndarray:
+    """:func:`_component_distances` with the sources split between ``n_jobs`` spawned processes."""
+    n_jobs = min(n_jobs, sources.size)
+    if n_jobs <= 1:
+        return _component_distances(v, f, sources, method, t_coef, robust)
+    chunks = np.array_split(sources, n_jobs)
+    # "spawn": a forked child of a process with torch / OpenMP threads can deadlock.
+    with ProcessPoolExecutor(n_jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        parts = pool.map(_component_distances, *zip(*[(v, f, c, method, t_coef, robust) for c in chunks]))
+        return np.concatenate(list(parts), axis=0)
 
 
 def _component_distances(v, f, sources, method: str, t_coef: float, robust: bool) -> np.ndarray:

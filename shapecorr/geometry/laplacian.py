@@ -62,9 +62,14 @@ EIGSH_SHIFT_REL = 1e-8
 #: ARPACK convergence tolerance (relative accuracy of the Ritz values of the inverted operator).
 EIGSH_TOL = 1e-10
 #: Eigenpairs computed per shift-invert solve ("spectral slice"). ARPACK's cost grows with the square of the
-#: number of requested pairs (its eigenvector extraction dseupd dominated: 12 s of 15 s for 500 pairs on a
-#: 5k-vertex mesh), so many pairs are computed as several slices at increasing shifts: 500 pairs take ~2 s.
-EIGSH_SLICE_SIZE = 100
+#: number of requested pairs (one 500-pair run on a 5k-vertex FAUST_r shape: 15 s, 12 s of it in the
+#: eigenvector extraction dseupd), so many pairs are computed as several slices at increasing shifts
+#: (500 pairs: ~2.5 s of CPU). 40-60 measured best on FAUST_r (benchmarks/geometry_speed.py).
+EIGSH_SLICE_SIZE = 50
+#: Lanczos basis size per slice: ncv = max(EIGSH_NCV_FACTOR * m + 1, m + EIGSH_NCV_MIN_EXTRA). scipy's
+#: default factor is 2; 1.3-1.45 was ~20% faster on FAUST_r (fewer BLAS-2 orthogonalization steps).
+EIGSH_NCV_FACTOR = 1.4
+EIGSH_NCV_MIN_EXTRA = 20
 #: Fraction of each slice spent re-finding eigenvalues of the previous slice (guarantees no gap).
 EIGSH_SLICE_OVERLAP = 0.15
 #: Attempts to place a slice so that it reaches back below the boundary (shift halfway closer, 1.5x pairs).
@@ -309,7 +314,8 @@ def _lowest_eigenpairs(
     if scale is None:
         scale = float(np.mean(A.diagonal()))
     if n <= DENSE_MAX_N or k > DENSE_MAX_K_FRACTION * n:
-        return _dense_eigh(A, k)
+        with _single_threaded_blas() if n <= DENSE_MAX_N else nullcontext():
+            return _dense_eigh(A, k)
     try:
         with _single_threaded_blas():
             evals, evecs = _sliced_eigsh(A, k, scale, slice_size, tol)
@@ -386,7 +392,8 @@ class _ShiftInvert:
             v0 = v0 - known @ (known.T @ v0)
         op = sla.LinearOperator((self.n, self.n), matvec=matvec, dtype=np.float64)
         m = min(m, self.n - 1 - (0 if known is None else known.shape[1]))
-        evals, evecs = sla.eigsh(self.A, k=m, sigma=self.sigma, OPinv=op, tol=tol, ncv=min(self.n, 2 * m + 1), v0=v0)
+        ncv = min(self.n, max(int(EIGSH_NCV_FACTOR * m) + 1, m + EIGSH_NCV_MIN_EXTRA))
+        evals, evecs = sla.eigsh(self.A, k=m, sigma=self.sigma, OPinv=op, tol=tol, ncv=ncv, v0=v0)
         order = np.argsort(evals)
         return evals[order], evecs[:, order]
 
@@ -507,7 +514,7 @@ def _fix_signs(phi: np.ndarray, m: np.ndarray) -> None:
     """Flip the columns of ``phi`` in place by the documented sign rule (see :func:`eigenbasis`)."""
     if phi.shape[1] == 0:
         return
-    cube = phi**3
+    cube = phi * phi * phi
     skew = m @ cube
     magnitude = m @ np.abs(cube)
     largest = phi[np.abs(phi).argmax(axis=0), np.arange(phi.shape[1])]

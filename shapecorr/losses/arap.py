@@ -11,7 +11,8 @@ v_0[a]`` and ``e_t = v_t[b] - v_t[a]`` for every edge ``(a, b)`` of weight ``w_e
   - ``"both-sides"`` (default): ``sum_e w_e (||e_t - R_a e_0||^2 + ||e_t - R_b e_0||^2)``. This is the
     classic ARAP energy ``sum_i sum_{e ∋ i} w_e ||e_t - R_i e_0||^2`` (each undirected edge seen from both of
     its vertices, the same as a source-vertex rotation summed over directed edges) and the energy written in
-    the NeuroMorph paper (eq. 5).
+    the NeuroMorph paper (eq. 5). With optimal rotations it is symmetric in the two poses:
+    ``E(V_0 -> V_t) = E(V_t -> V_0)``, since ``min_R ||e_t - R e_0|| = min_R ||e_0 - R^T e_t||``.
   - ``"average"``: ``sum_e w_e ||e_t - 0.5 (R_a + R_b) e_0||^2``, what the NeuroMorph code computes
     (methods-digest §4.5). ``0.5 (R_a + R_b)`` is not a rotation, and the ``R_i`` are not the minimizers of
     this energy.
@@ -276,8 +277,10 @@ def arap_sequence_loss(
     """NeuroMorph's E_arap over an interpolation sequence, both directions between consecutive frames.
 
     ``sum_k [ARAP(F_k -> F_k+1) + ARAP(F_k+1 -> F_k)] + 2 * displacement_weight * sum_k ||F_k+1 - F_k||^2``
-    (methods-digest §4.5: the original adds ``1e-6 ||V_t - V_0||^2`` to each of its ARAP evaluations). All
-    ``2 (S - 1)`` evaluations run as one batch.
+    (methods-digest §4.5: the original adds ``1e-6 ||V_t - V_0||^2`` to each of its ARAP evaluations). The
+    evaluations run as one batch. The "both-sides" energy is symmetric in its two poses, so it is evaluated
+    in one direction and doubled (same value and gradient, half the SVDs); "average" is not symmetric and
+    is evaluated both ways.
 
     Parameters
     ----------
@@ -297,9 +300,14 @@ def arap_sequence_loss(
     """
     if frames.ndim != 3 or frames.shape[0] < 2:
         raise ConfigError(f"frames must be (S, n, 3) with S >= 2, got {tuple(frames.shape)}")
-    rest = torch.cat((frames[:-1], frames[1:]), dim=0)
-    deformed = torch.cat((frames[1:], frames[:-1]), dim=0)
-    loss = arap_energy(rest, deformed, edges, edge_weights, mode=mode, detach_rotations=detach_rotations).sum()
+    if mode == "both-sides":
+        # Symmetric in its two poses (min_R ||e_t - R e_0|| = min_R ||e_0 - R^T e_t||): one direction, doubled.
+        loss = 2.0 * arap_energy(frames[:-1], frames[1:], edges, edge_weights, mode=mode,
+                                 detach_rotations=detach_rotations).sum()
+    else:
+        rest = torch.cat((frames[:-1], frames[1:]), dim=0)
+        deformed = torch.cat((frames[1:], frames[:-1]), dim=0)
+        loss = arap_energy(rest, deformed, edges, edge_weights, mode=mode, detach_rotations=detach_rotations).sum()
     if displacement_weight:
         loss = loss + 2.0 * displacement_weight * (frames[1:] - frames[:-1]).square().sum()
     if not bool(torch.isfinite(loss.detach())):

@@ -52,7 +52,6 @@ original Python behaviour, and is what the parity test uses):
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -60,6 +59,7 @@ import torch
 
 from shapecorr.errors import ConfigError, InvalidMeshError, NumericalError
 from shapecorr.geometry.normals import vertex_normals
+from shapecorr.geometry.sampling import farthest_point_sampling
 from shapecorr.geometry.shells import sigmoid_shell_weights, smooth_shell, spectral_coefficients
 from shapecorr.matching.least_squares import DEFAULT_RIDGE, normal_equations, solve_normal_equations
 from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
@@ -377,6 +377,26 @@ class _Stencil:
         return vertex_normals(local_verts, self.faces)[self.rows]
 
 
+class _Level:
+    """Feature-independent quantities of one training level (shell size ``k``) at the samples."""
+
+    def __init__(self, shape_x, shape_y, samples_x, samples_y, stencil, k, config):
+        incl = config.sigmoid_inclusive
+        self.stencil_phi_x = shape_x.evecs[stencil.verts, :k]
+        self.stencil_shell_x = _shell(shape_x, k, config.smooth_x, incl, rows=stencil.verts)
+        self.phi_x = self.stencil_phi_x[stencil.rows]
+        self.shell_x = self.stencil_shell_x[stencil.rows]
+        self.phi_y = shape_y.evecs[samples_y, :k]
+        shell_y_full = _shell(shape_y, k, "sigmoid", incl)
+        self.shell_y = shell_y_full[samples_y]
+        normals_y_full = vertex_normals(shell_y_full, shape_y.faces)
+        self.normals_y = normals_y_full[samples_y]
+        self.fac_spec, self.fac_norm = _embedding_scales(
+            shell_y_full, shape_y.evecs[:, :k], normals_y_full if config.normal_norm == "all" else self.normals_y,
+            config.fac_spec, config.fac_norm,
+        )
+
+
 def _check_eigs(shape: SpectralShape, ks, config: DeepShellsConfig) -> None:
     need = max(max(shell_size(k, config.smooth_x, config.sigmoid_inclusive),
                    shell_size(k, "sigmoid", config.sigmoid_inclusive)) for k in ks)
@@ -440,9 +460,14 @@ def deformation_from_plans(
     fmap : (k, k) float
     tau : (k, 3) float
     """
-    k = phi_x.shape[1]
     py = plan @ torch.cat([phi_y, shell_y], 1)  # (n, k + 3)
     qx = plan_adj @ torch.cat([phi_x, shell_x], 1)  # (m, k + 3)
+    return _deformation_from_products(py, qx, phi_x, phi_y, shell_x, shell_y, ridge)
+
+
+def _deformation_from_products(py, qx, phi_x, phi_y, shell_x, shell_y, ridge):
+    """:func:`deformation_from_plans` given ``py = P [Phi_Y, Y_k]`` and ``qx = P_adj [Phi_X, X_k]``."""
+    k = phi_x.shape[1]
     design = torch.cat([phi_x, qx[:, :k]], 0)
     target = torch.cat([
         torch.cat([py[:, :k], py[:, k:] - shell_x], 1),
@@ -519,37 +544,6 @@ def random_samples(n: int, num: int, generator: torch.Generator | None = None, d
     return torch.randint(0, n, (num,), generator=generator, device=device)
 
 
-def farthest_point_sampling(points: torch.Tensor, num: int, start: int = 0) -> torch.Tensor:
-    """Greedy farthest-point sampling (Euclidean), starting at vertex ``start``.
-
-    Written here because none of the dependencies provides it (torch_cluster / open3d are not
-    dependencies); one vectorized distance update per sample, ``O(n num)``.
-
-    Parameters
-    ----------
-    points : (n, d) float
-    num : int
-        Number of samples, ``<= n``.
-    start : int
-
-    Returns
-    -------
-    (num,) int64
-    """
-    n = points.shape[0]
-    if not 1 <= num <= n:
-        raise ConfigError(f"farthest_point_sampling: cannot draw {num} samples from {n} points")
-    p = points.detach()
-    chosen = torch.empty(num, dtype=torch.int64, device=p.device)
-    chosen[0] = start
-    dist = ((p - p[start]) ** 2).sum(1)
-    for i in range(1, num):
-        nxt = torch.argmax(dist)
-        chosen[i] = nxt
-        dist = torch.minimum(dist, ((p - p[nxt]) ** 2).sum(1))
-    return chosen
-
-
 # ----------------------------------------------------------------------------------------------------------
 # the training layer
 
@@ -610,40 +604,33 @@ def deep_shells_layer(
         raise ConfigError(f"deep shells: feature widths differ ({feat_x.shape[1]} vs {feat_y.shape[1]})")
     _check_eigs(shape_x, config.k_array, config)
     _check_eigs(shape_y, config.k_array, config)
-    incl = config.sigmoid_inclusive
+    stencil = _Stencil(shape_x.faces, samples_x, shape_x.n_verts)
+    levels = [_Level(shape_x, shape_y, samples_x, samples_y, stencil, k, config) for k in config.k_array]
 
     plan, plan_adj = _sinkhorn(config, feat_x, feat_y)
-    stencil = _Stencil(shape_x.faces, samples_x, shape_x.n_verts)
+    first = levels[0]
+    py = plan @ torch.cat([first.phi_y, first.shell_y], 1)
+    qx = plan_adj @ torch.cat([first.phi_x, first.shell_x], 1)
     energies = []
-    for k in config.k_array:
-        phi_x = shape_x.evecs[samples_x, :k]
-        phi_y = shape_y.evecs[samples_y, :k]
-        shell_x = _shell(shape_x, k, config.smooth_x, incl, rows=stencil.verts)  # one-ring of the samples
-        shell_x_s = shell_x[stencil.rows]
-        shell_y_full = _shell(shape_y, k, "sigmoid", incl)
-        shell_y = shell_y_full[samples_y]
-        fmap, tau = deformation_from_plans(plan, plan_adj, phi_x, phi_y, shell_x_s, shell_y, config.ridge)
-
-        deformed = shell_x + shape_x.evecs[stencil.verts, :k] @ tau
+    for i, lv in enumerate(levels):
+        fmap, tau = _deformation_from_products(py, qx, lv.phi_x, lv.phi_y, lv.shell_x, lv.shell_y, config.ridge)
+        deformed = lv.stencil_shell_x + lv.stencil_phi_x @ tau  # X* on the samples' one-ring
         deformed_s = deformed[stencil.rows]
-        normals_x = stencil.normals(deformed)
-        normals_y_full = vertex_normals(shell_y_full, shape_y.faces)
-        normals_y = normals_y_full[samples_y]
-        fac_s, fac_n = _embedding_scales(
-            shell_y_full, shape_y.evecs[:, :k], normals_y_full if config.normal_norm == "all" else normals_y,
-            config.fac_spec, config.fac_norm,
-        )
-        emb_x, emb_y = _product_embedding(deformed_s, phi_x @ fmap, normals_x, shell_y, phi_y, normals_y,
-                                          fac_s, fac_n)
+        emb_x, emb_y = _product_embedding(deformed_s, lv.phi_x @ fmap, stencil.normals(deformed), lv.shell_y,
+                                          lv.phi_y, lv.normals_y, lv.fac_spec, lv.fac_norm)
         plan, plan_adj = _sinkhorn(config, emb_x, emb_y)
-        energies.append((deformed_s - plan @ shell_y).square().sum()
-                        + (plan_adj @ deformed_s - shell_y).square().sum())
+        # One product per plan for the energy and the next level's solve (one n x m gradient buffer each).
+        nxt = levels[i + 1] if i + 1 < len(levels) else None
+        py = plan @ torch.cat([lv.shell_y] + ([nxt.phi_y, nxt.shell_y] if nxt else []), 1)
+        qx = plan_adj @ torch.cat([deformed_s] + ([nxt.phi_x, nxt.shell_x] if nxt else []), 1)
+        energies.append((deformed_s - py[:, :3]).square().sum() + (qx[:, :3] - lv.shell_y).square().sum())
+        py, qx = py[:, 3:], qx[:, 3:]
     level_energies = torch.stack(energies)
     loss = level_energies.mean()
     if not torch.isfinite(loss):
         raise NumericalError("deep shells: the loss is NaN or Inf")
     return DeepShellsOutput(loss=loss, level_energies=level_energies, plan=plan, plan_adj=plan_adj,
-                            fmap=fmap, tau=tau, deformed_x=deformed_s, shell_y=shell_y)
+                            fmap=fmap, tau=tau, deformed_x=deformed_s, shell_y=lv.shell_y)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -758,8 +745,8 @@ def deep_shells_query(
     with torch.no_grad():
         if max(n_x, n_y) > config.max_query_points:
             num = min(n_x - 1, n_y - 1, config.max_query_points)
-            samples_x = farthest_point_sampling(shape_x.verts, num)
-            samples_y = farthest_point_sampling(shape_y.verts, num)
+            samples_x = torch.from_numpy(farthest_point_sampling(shape_x.verts.cpu(), num)).to(feat_x.device)
+            samples_y = torch.from_numpy(farthest_point_sampling(shape_y.verts.cpu(), num)).to(feat_y.device)
         else:
             samples_x = torch.arange(n_x, device=feat_x.device)
             samples_y = torch.arange(n_y, device=feat_y.device)

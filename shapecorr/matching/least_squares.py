@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import torch
 
-from shapecorr.errors import NumericalError
+from shapecorr.errors import ConfigError, NumericalError
 
 #: Ridge added to the normal equations, relative to the mean diagonal of the Gram matrix. Tiny on purpose:
 #: float64 Gram matrices are accurate to ~1e-16 relative, so 1e-8 only matters where the problem is
@@ -48,7 +48,7 @@ def normal_equations(
         ``a^T diag(w) b``.
     """
     if a.dim() != 2 or b.dim() != 2 or a.shape[0] != b.shape[0]:
-        raise ValueError(f"normal_equations: need a (r, k) and b (r, c), got {tuple(a.shape)} and {tuple(b.shape)}")
+        raise ConfigError(f"normal_equations: need a (r, k) and b (r, c), got {tuple(a.shape)} and {tuple(b.shape)}")
     a64 = a.to(torch.float64)
     b64 = b.to(torch.float64)
     wa = a64 if weights is None else a64 * weights.to(torch.float64)[:, None]
@@ -82,7 +82,7 @@ def solve_normal_equations(
         design matrix with ``ridge = 0``), or the solution is not finite.
     """
     if ridge < 0:
-        raise ValueError(f"ridge must be >= 0, got {ridge}")
+        raise ConfigError(f"ridge must be >= 0, got {ridge}")
     g = gram.to(torch.float64)
     z = rhs.to(torch.float64)
     if not (torch.isfinite(g).all() and torch.isfinite(z).all()):

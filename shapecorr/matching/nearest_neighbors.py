@@ -34,9 +34,9 @@ _BACKENDS = ("auto", "kdtree", "brute")
 
 def _check(emb_x: torch.Tensor, emb_y: torch.Tensor) -> None:
     if emb_x.dim() != 2 or emb_y.dim() != 2 or emb_x.shape[1] != emb_y.shape[1]:
-        raise ValueError(f"nearest neighbours: need (n, d) and (m, d), got {tuple(emb_x.shape)}, {tuple(emb_y.shape)}")
+        raise ConfigError(f"nearest neighbours: need (n, d) and (m, d), got {tuple(emb_x.shape)}, {tuple(emb_y.shape)}")
     if emb_x.shape[0] == 0 or emb_y.shape[0] == 0:
-        raise ValueError("nearest neighbours: empty point set")
+        raise ConfigError("nearest neighbours: empty point set")
     if not (torch.isfinite(emb_x).all() and torch.isfinite(emb_y).all()):
         raise NumericalError("nearest neighbours: the embedding contains NaN or Inf")
 

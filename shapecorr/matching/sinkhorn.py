@@ -14,13 +14,14 @@ layer uses and what it backpropagates through (gradients of the unrolled iterati
 
 Implementation. Every normalization only changes a row potential ``u`` or a column potential ``v``:
 ``log P = L + u 1^T + 1 v^T`` with ``L = -D / (2 sigma^2 mean(D))``. :func:`sinkhorn` keeps ``u, v`` in
-the log domain but applies the kernel ``K = exp(L - rowmax(L))`` (computed once; the row shift is absorbed by
-the first row normalization) by matrix-vector products, ``u = -log(K exp(v - c)) - c`` with ``c = max(v)``,
-which is exact and costs one pass over ``K`` instead of the several passes of a ``logsumexp``. Every row of
-``K`` has maximum 1, so nothing overflows and rows cannot underflow; if a column underflows (a point of Y
-whose costs to all of X exceed their nearest-neighbour costs by more than ~43 (float32) or ~350 (float64)
-units of ``2 sigma^2 mean(D)``) the call falls back to the plain log-domain iterations of :func:`sinkhorn_log_reference`,
-which are exact in that regime too.
+the log domain but applies the Gibbs kernel ``K = exp(L)`` (computed once, rows scaled to sum 1 -- a row
+factor is absorbed by the first row normalization) by matrix-vector products,
+``u = -log(K exp(v - c)) - c`` with ``c = max(v)``, which is exact and costs one pass over ``K`` instead of the
+several passes of a ``logsumexp``. ``L <= 0``, so nothing overflows; rows whose sum underflows (every cost of
+the row far above the mean, e.g. untrained high-dimensional features) are instead shifted by their maximum;
+if a column still underflows (a point of Y whose costs to all of X exceed their nearest-neighbour costs by
+more than ~43 (float32) or ~350 (float64) in units of ``2 sigma^2 mean(D)``) the call falls back to the plain
+log-domain iterations of :func:`sinkhorn_log_reference`, which are exact in that regime too.
 The backward pass is written by hand (a custom ``autograd.Function``): the gradient of the unrolled
 iterations is ``dL = G_P * P + G_Q * Q - K * (sum_r a_r b_r^T)``, a sum of rank-one terms that are
 accumulated as two thin ``(n, r)``, ``(m, r)`` factors (``r = 2 num_iters + 2``) and applied with one matrix
@@ -40,7 +41,7 @@ from typing import NamedTuple
 import torch
 from torch.autograd.function import once_differentiable
 
-from shapecorr.errors import NumericalError
+from shapecorr.errors import ConfigError, NumericalError
 
 #: Deep Shells ``sigma_sink`` (param.py DiffParam; stored in the released checkpoint's ``par``).
 DEFAULT_SIGMA = 0.1
@@ -83,7 +84,7 @@ def pairwise_sq_dists(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     (n, m) float
     """
     if x.dim() != 2 or y.dim() != 2 or x.shape[1] != y.shape[1]:
-        raise ValueError(f"pairwise_sq_dists: need (n, d) and (m, d), got {tuple(x.shape)} and {tuple(y.shape)}")
+        raise ConfigError(f"pairwise_sq_dists: need (n, d) and (m, d), got {tuple(x.shape)} and {tuple(y.shape)}")
     d = torch.addmm((x * x).sum(1, keepdim=True), x, y.transpose(0, 1), alpha=-2.0)
     d = d + (y * y).sum(1)[None, :]
     return d.clamp_min(0.0)
@@ -91,9 +92,9 @@ def pairwise_sq_dists(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
 
 def _check_args(sigma: float, num_iters: int) -> None:
     if not sigma > 0:
-        raise ValueError(f"sinkhorn: sigma must be positive, got {sigma}")
+        raise ConfigError(f"sinkhorn: sigma must be positive, got {sigma}")
     if num_iters < 0:
-        raise ValueError(f"sinkhorn: num_iters must be >= 0, got {num_iters}")
+        raise ConfigError(f"sinkhorn: num_iters must be >= 0, got {num_iters}")
 
 
 def _check_mean(mean: torch.Tensor) -> None:
@@ -130,32 +131,48 @@ def _scaled_kernel(kernel: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> to
     return out.mul_(b[None, :])
 
 
-def _row_shifted_kernel(log_kernel: torch.Tensor) -> torch.Tensor:
-    """``exp(L - max_j L)`` in place: every row of the kernel has maximum 1.
+def _gibbs_kernel(make_log_kernel) -> tuple[torch.Tensor, bool]:
+    """Row-normalized Gibbs kernel ``K = exp(L) / rowsum(exp(L))`` from a fresh log-kernel buffer.
 
-    The iterations start with a row normalization, so a per-row factor of the kernel does not change any plan
-    (it is absorbed by the first row potential); it keeps rows of concentrated high-dimensional costs
-    (all entries far below 0, e.g. untrained features) from underflowing.
+    The iterations start with a row normalization, so a per-row factor of the kernel changes no plan (the
+    first row potential absorbs it); with rows summing to 1 that first normalization is the identity and the
+    potentials stay balanced (no row dominates the column updates). ``L <= 0`` up to rounding, so ``exp``
+    cannot overflow. If a row sum underflows (concentrated high-dimensional costs, every entry of a row far
+    below 0, e.g. untrained features), the kernel is rebuilt as ``exp(L - rowmax(L))`` instead.
+
+    Returns
+    -------
+    kernel : (n, m)
+    normalized : bool
+        Whether the rows of ``kernel`` sum to 1 (else only their maximum is 1).
     """
-    return log_kernel.sub_(log_kernel.amax(1, keepdim=True)).exp_()
+    kernel = make_log_kernel().exp_()
+    row_sums = torch.mv(kernel, kernel.new_ones(kernel.shape[1]))
+    if bool((row_sums >= torch.finfo(kernel.dtype).tiny ** 0.5).all()):
+        return kernel.div_(row_sums[:, None]), True
+    log_kernel = make_log_kernel()
+    return log_kernel.sub_(log_kernel.amax(1, keepdim=True)).exp_(), False
 
 
-def _iterate(kernel: torch.Tensor, num_iters: int):
-    """Forward iterations on the kernel; returns (plan, plan_adj^T, row potentials, column potentials)."""
+def _iterate(kernel: torch.Tensor, num_iters: int, normalized: bool = False):
+    """Forward iterations on the kernel; returns (plan, plan_adj^T, row potentials, column potentials).
+
+    ``normalized``: the rows of ``kernel`` already sum to 1, so the first row update is the identity.
+    """
     v = kernel.new_zeros(kernel.shape[1])
     us: list[torch.Tensor] = []
     vs: list[torch.Tensor] = [v]
-    for _ in range(num_iters):
-        u = _neg_log_apply(kernel, v, transpose=False)
+    for it in range(num_iters + 1):
+        if it == 0 and normalized:
+            u = kernel.new_zeros(kernel.shape[0])
+        else:
+            u = _neg_log_apply(kernel, v, transpose=False)
         v = _neg_log_apply(kernel, u, transpose=True)
         us.append(u)
         vs.append(v)
-    u_star = _neg_log_apply(kernel, v, transpose=False)
-    v_adj = _neg_log_apply(kernel, u_star, transpose=True)
-    us.append(u_star)
-    vs.append(v_adj)
-    plan = _scaled_kernel(kernel, u_star, v)
-    plan_adj_t = _scaled_kernel(kernel, u_star, v_adj)
+    # the last round is the final row normalization (-> plan) and one more column one (-> plan_adj)
+    plan = _scaled_kernel(kernel, us[-1], vs[-2])
+    plan_adj_t = _scaled_kernel(kernel, us[-1], vs[-1])
     return plan, plan_adj_t, us, vs
 
 
@@ -208,7 +225,7 @@ def _log_kernel_grad(kernel, plan, plan_adj_t, us, vs, g_plan, g_plan_adj_t):
         if t > 0:
             v_bar = -(b * torch.mv(kernel.transpose(0, 1), a * u_bar))
     low_rank = torch.stack(fa, 1) @ torch.stack(fb, 1).transpose(0, 1)
-    return grad.sub_(low_rank.mul_(kernel))
+    return grad.addcmul_(kernel, low_rank, value=-1.0)
 
 
 class _SinkhornCost(torch.autograd.Function):
@@ -217,8 +234,8 @@ class _SinkhornCost(torch.autograd.Function):
         mean = cost.mean()
         _check_mean(mean)
         scale = 1.0 / (2.0 * sigma * sigma * float(mean))
-        kernel = _row_shifted_kernel(cost * (-scale))
-        plan, plan_adj_t, us, vs = _iterate(kernel, num_iters)
+        kernel, normalized = _gibbs_kernel(lambda: cost * (-scale))
+        plan, plan_adj_t, us, vs = _iterate(kernel, num_iters, normalized)
         plan_adj = plan_adj_t.transpose(0, 1)
         ctx.save_for_backward(cost, kernel, plan, plan_adj)
         ctx.potentials = (us, vs)
@@ -249,10 +266,13 @@ class _SinkhornSqEuclidean(torch.autograd.Function):
         mean = xx.mean() + yy.mean() - 2.0 * torch.dot(x.mean(0), y.mean(0))
         _check_mean(mean)
         scale = 1.0 / (2.0 * sigma * sigma * float(mean))
-        # log K = -scale * (|x|^2 + |y|^2 - 2 x.y); rounding can make it slightly positive (K <= 1 + ~1e-6).
-        kernel = torch.addmm((xx * -scale)[:, None], x, y.transpose(0, 1), alpha=2.0 * scale)
-        kernel = _row_shifted_kernel(kernel.add_((yy * -scale)[None, :]))
-        plan, plan_adj_t, us, vs = _iterate(kernel, num_iters)
+        # log K = -scale * (|x|^2 + |y|^2 - 2 x.y) as one product of augmented matrices
+        # [x, |x|^2, 1] [2 s y, -s, -s |y|^2]^T (rounding can make it slightly positive: K <= 1 + ~1e-6).
+        ones_x, ones_y = x.new_ones(x.shape[0], 1), y.new_ones(y.shape[0], 1)
+        left = torch.cat([x, xx[:, None], ones_x], 1)
+        right = torch.cat([y * (2.0 * scale), ones_y * -scale, (yy * -scale)[:, None]], 1)
+        kernel, normalized = _gibbs_kernel(lambda: left @ right.transpose(0, 1))
+        plan, plan_adj_t, us, vs = _iterate(kernel, num_iters, normalized)
         plan_adj = plan_adj_t.transpose(0, 1)
         ctx.save_for_backward(x, y, kernel, plan, plan_adj)
         ctx.potentials = (us, vs)
@@ -270,9 +290,11 @@ class _SinkhornSqEuclidean(torch.autograd.Function):
             return None, None, None, None
         n, m = lbar.shape
         s = ctx.scale
-        rs, cs = lbar.sum(1), lbar.sum(0)
-        ly = lbar @ y  # (n, d)
-        ltx = lbar.transpose(0, 1) @ x  # (m, d)
+        # row/column sums of Lbar come with the products (one pass over Lbar each)
+        ly = lbar @ torch.cat([y, y.new_ones(m, 1)], 1)  # (n, d + 1)
+        ltx = lbar.transpose(0, 1) @ torch.cat([x, x.new_ones(n, 1)], 1)  # (m, d + 1)
+        rs, ly = ly[:, -1], ly[:, :-1]
+        cs, ltx = ltx[:, -1], ltx[:, :-1]
         xx, yy = (x * x).sum(1), (y * y).sum(1)
         # sum_ij Lbar_ij D_ij, with D = |x|^2 + |y|^2 - 2 x.y
         inner = torch.dot(rs, xx) + torch.dot(cs, yy) - 2.0 * (x * ly).sum()
@@ -350,7 +372,7 @@ def sinkhorn(
     """
     _check_args(sigma, num_iters)
     if cost.dim() != 2:
-        raise ValueError(f"sinkhorn: cost must be (n, m), got {tuple(cost.shape)}")
+        raise ConfigError(f"sinkhorn: cost must be (n, m), got {tuple(cost.shape)}")
     try:
         plan, plan_adj = _SinkhornCost.apply(cost, float(sigma), int(num_iters))
     except _KernelUnderflow:
@@ -380,9 +402,9 @@ def sinkhorn_sq_euclidean(
     """
     _check_args(sigma, num_iters)
     if x.dim() != 2 or y.dim() != 2 or x.shape[1] != y.shape[1]:
-        raise ValueError(f"sinkhorn_sq_euclidean: need (n, d) and (m, d), got {tuple(x.shape)}, {tuple(y.shape)}")
+        raise ConfigError(f"sinkhorn_sq_euclidean: need (n, d) and (m, d), got {tuple(x.shape)}, {tuple(y.shape)}")
     if x.dtype != y.dtype:
-        raise ValueError(f"sinkhorn_sq_euclidean: dtype mismatch {x.dtype} vs {y.dtype}")
+        raise ConfigError(f"sinkhorn_sq_euclidean: dtype mismatch {x.dtype} vs {y.dtype}")
     try:
         plan, plan_adj = _SinkhornSqEuclidean.apply(x, y, float(sigma), int(num_iters))
     except _KernelUnderflow:

@@ -20,26 +20,32 @@ network input) and the pooled channels ``s``, in this order: its message is ``[x
 s_j - s_i]``. (The original orders its concatenation ``[net, pool, p]``; a weight port must permute the
 input columns of ``fc0`` and ``shortcut`` accordingly.)
 
-Fast path (``fast=True``, default). Exact algebraic restructurings of the same function; the only
-per-edge work left is what follows a nonlinearity of a per-edge quantity:
+Fast path (``fast=True``, default). Exact algebraic restructurings of the same function (tests compare
+it with the plain per-edge formulation, values and gradients, in float64):
 
-1. ``shortcut`` is linear in m: ``Ws m_ij = (Wa - Wb) u_i + Wb u_j`` with ``Ws = [Wa | Wb]``. Both products
-   are per-vertex ``(n, .)`` GEMMs; the ``u_i`` term (and ``fc1``'s bias) is constant over the neighbours
-   and moves out of the max.
-2. ``fc0`` acts on ``relu(m) = [relu(u_i), relu(u_j - u_i)]`` (pre-activation, so fc0 is *not* linear in m):
-   the ``relu(u_i)`` half is a per-vertex product; the ``relu(u_j - u_i)`` half needs one per-edge GEMM,
-   but only once per undirected edge, because ``relu(-d) = relu(d) - d`` gives the reverse direction from
-   the forward one plus per-vertex terms: ``W relu(u_i - u_j) = W relu(u_j - u_i) - W u_j + W u_i``.
+1. ``shortcut`` is linear in m: ``Ws m_ij = (Wa - Wb) u_i + Wb u_j`` with ``Ws = [Wa | Wb]``. Both are
+   per-vertex ``(n, .)`` products; the ``u_i`` term (and ``fc1``'s bias) is the same for every message of
+   vertex i and moves out of the max.
+2. ``fc0`` acts on ``relu(m) = [relu(u_i), relu(u_j - u_i)]`` (pre-activation: fc0 is *not* linear in m,
+   contrary to a first reading of the block). But ``relu(u_j - u_i) = max(u_i, u_j) - u_i``, so
+   ``fc0(relu(m_ij)) = [W0a relu(u_i) - W0b u_i + b0] + W0b max(u_i, u_j)``: a per-vertex term plus a
+   per-edge term that is **symmetric** in (i, j). One GEMM per undirected edge serves both directions.
 3. Pooled channels shared by all vertices (global pooling) have ``s_j - s_i = 0``: they enter only
-   through per-vertex terms.
+   through per-vertex terms, and the per-edge GEMM runs on ``h + dim`` instead of ``2h + dim`` channels.
 4. Duplicate edges do not change a max, so edges are passed deduplicated, once per undirected edge
-   (:func:`shapecorr.geometry.mesh_graph.undirected_edges`).
+   (:func:`shapecorr.geometry.mesh_graph.undirected_edges`); the original's face-listed edges count every
+   interior edge twice per direction.
 
-What remains per edge is one GEMM ``(E, c) x (c, h)`` for ``fc0`` on half the directed edges and one
-``(2E, h) x (h, h)`` for ``fc1``, against ``(2E, 2c) x (2c, h)`` twice plus the ``fc1`` GEMM on the
-duplicated directed edges of the original. The max aggregation is ``Tensor.scatter_reduce_`` with
-``"amax"`` (native torch, no compiled extension). ``fast=False`` runs the plain per-edge formulation and is
-kept as the reference (tests compare both, values and gradients, in float64).
+Per layer, the per-edge work is one ``(E, c) x (c, h)`` GEMM (undirected edges) and the ``(2E, h) x (h, h)``
+GEMM of ``fc1`` (directed messages), against ``(4E, 2c) x (2c, h)`` twice plus ``(4E, h) x (h, h)`` in the
+original (E undirected edges, face-listed duplicates). The max aggregation is
+``Tensor.scatter_reduce_(..., "amax", include_self=False)`` (native torch, no compiled extension). Two
+backward passes are hand-written because torch's generic ones dominated the CPU profile (torch 2.13): the
+max (torch's ``scatter_reduce`` backward over an expanded index, ~20x its forward) and ``torch.maximum``
+(bool-mask selects, ~20x its forward); the per-edge half of the layer runs in one autograd node that reuses
+its large buffers in place. Batched inputs are flattened to rows, because scatters and gathers along dim -2
+of 3-D tensors take a slow generic path on CPU.
+``fast=False`` runs the plain per-edge formulation with torch's own autograd and is kept as the reference.
 
 Shapes: features are ``(..., n, c)`` with any leading batch dimensions (e.g. the time steps of the
 interpolator), ``edges`` is ``(E, 2)`` int64 of undirected vertex pairs; messages flow both ways.
@@ -47,6 +53,7 @@ interpolator), ``edges`` is ``(E, 2)`` int64 of undirected vertex pairs; message
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -132,15 +139,31 @@ def _flat_rows(index: torch.Tensor, n_rows: int, n_batch: int) -> torch.Tensor:
     return (index.unsqueeze(0) + offsets.unsqueeze(1)).reshape(-1)
 
 
+def _max_backward(
+    grad_out: torch.Tensor, values: torch.Tensor, out: torch.Tensor, receivers: torch.Tensor, n_winners: int
+) -> torch.Tensor:
+    """Gradient of ``out = row-wise max of values (R, c) by receivers`` w.r.t. ``values``.
+
+    The gradient flows to the value(s) equal to the maximum, split evenly among ties as in torch's own amax
+    backward. The mask is a float tensor (``torch.eq`` with a float ``out=``): products and selects with bool
+    masks are 3-8x slower on CPU (torch 2.13). Ties are counted only when there are more winners than
+    (receiver, channel) pairs, which continuous data never produces (but identical neighbours do).
+    """
+    winners = out.index_select(0, receivers)
+    torch.eq(values, winners, out=winners)
+    if int(winners.sum()) != n_winners:
+        counts = torch.zeros_like(grad_out).index_add_(0, receivers, winners)
+        grad_out = grad_out / counts.clamp_min(1)
+    return grad_out.index_select(0, receivers).mul_(winners)
+
+
 class _MaxAggregate(torch.autograd.Function):
     """Row-wise max of ``values (R, c)`` into ``(n_out, c)`` by ``receivers (R,)``, with a fast backward.
 
     Forward is ``Tensor.scatter_reduce_(0, ..., "amax", include_self=False)``. Its built-in backward is
     generic (several scatters and gathers over an expanded index) and was the largest single cost of a
-    training step on CPU (about 40 ms of 45 ms for 15k x 128 values, one thread). The gradient of a max is
-    simple: it flows to the value(s) equal to the maximum, split evenly among ties. Here it is a row gather
-    and a mask; ties are counted only when they occur (never with continuous random data, but e.g. with
-    identical neighbour features).
+    training step on CPU (about 40 ms of 45 ms for 15k x 128 values, one thread); here it is
+    :func:`_max_backward`, a row gather and a mask.
     """
 
     @staticmethod
@@ -155,15 +178,7 @@ class _MaxAggregate(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out: torch.Tensor):
         values, receivers, out = ctx.saved_tensors
-        # A float mask (torch.eq with a float out=): products and selects with bool masks are 3-8x slower
-        # on CPU than a float multiply (torch 2.13).
-        winners = torch.empty_like(values)
-        torch.eq(values, out.index_select(0, receivers), out=winners)
-        if int(winners.sum()) != ctx.n_winners:
-            # Ties: split the gradient evenly among the equal maxima, as torch's own amax backward does.
-            counts = torch.zeros_like(grad_out).index_add_(0, receivers, winners)
-            grad_out = grad_out / counts.clamp_min(1)
-        return grad_out.index_select(0, receivers).mul_(winners), None, None, None
+        return _max_backward(grad_out, values, out, receivers, ctx.n_winners), None, None, None
 
 
 class _GatherMax(torch.autograd.Function):
@@ -179,9 +194,10 @@ class _GatherMax(torch.autograd.Function):
         xa, xb = x.index_select(0, ia), x.index_select(0, ib)
         b_wins = torch.empty_like(xa)
         torch.gt(xb, xa, out=b_wins)
+        torch.maximum(xa, xb, out=xa)
         ctx.save_for_backward(ia, ib, b_wins)
         ctx.n_rows = x.shape[0]
-        return torch.maximum(xa, xb)
+        return xa
 
     @staticmethod
     @torch.autograd.function.once_differentiable
@@ -192,6 +208,49 @@ class _GatherMax(torch.autograd.Function):
         grad_x = grad_out.new_zeros(ctx.n_rows, grad_out.shape[1])
         grad_x.index_add_(0, ia, grad_a).index_add_(0, ib, grad_b)
         return grad_x, None, None
+
+
+class _MessagesMax(torch.autograd.Function):
+    """The per-edge half of the fast EdgeConv, fused: from per-vertex and per-edge pre-activations to the
+    max-aggregated messages, with a hand-written backward.
+
+    ``out[r] = max_{k: receivers[k] = r} (neigh[senders[k]] + W1 relu(pre_vertex[receivers[k]] + edge[k mod E]))``
+
+    Same math as composing torch ops, but every large ``(2E, h)`` buffer is reused in place where autograd
+    would allocate a new one (large CPU allocations cost page faults comparable to the arithmetic), and the
+    max gradient is :func:`_max_backward`.
+    """
+
+    @staticmethod
+    def forward(ctx, pre_vertex, edge_term, neigh_term, w1, receivers, senders, n_batch, n_winners):
+        # One dtype for the in-place arithmetic (under autocast the inputs may mix bfloat16 and float32;
+        # autograd casts the returned gradients back to each input's dtype).
+        dtype = functools.reduce(torch.promote_types, (pre_vertex.dtype, edge_term.dtype, neigh_term.dtype, w1.dtype))
+        pre_vertex, edge_term, neigh_term, w1 = (t.to(dtype) for t in (pre_vertex, edge_term, neigh_term, w1))
+        hid, out_ch = pre_vertex.shape[1], neigh_term.shape[1]
+        hidden = pre_vertex.index_select(0, receivers)
+        hidden.view(n_batch, 2, -1, hid).add_(edge_term.view(n_batch, 1, -1, hid)).relu_()
+        messages = neigh_term.index_select(0, senders).addmm_(hidden, w1.T)
+        out = messages.new_zeros(neigh_term.shape[0], out_ch)
+        out.scatter_reduce_(0, receivers.unsqueeze(1).expand_as(messages), messages, "amax", include_self=False)
+        ctx.save_for_backward(hidden, messages, out, w1, receivers, senders)
+        ctx.n_batch, ctx.n_winners, ctx.n_pre = n_batch, n_winners, pre_vertex.shape[0]
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out):
+        hidden, messages, out, w1, receivers, senders = ctx.saved_tensors
+        grad_msg = _max_backward(grad_out, messages, out, receivers, ctx.n_winners)
+        grad_neigh = torch.zeros_like(grad_out).index_add_(0, senders, grad_msg)
+        grad_w1 = grad_msg.T @ hidden
+        grad_hidden = grad_msg @ w1
+        del grad_msg
+        torch.ops.aten.threshold_backward.grad_input(grad_hidden, hidden, 0, grad_input=grad_hidden)
+        hid = hidden.shape[1]
+        grad_edge = grad_hidden.view(ctx.n_batch, 2, -1, hid).sum(1).view(-1, hid)
+        grad_pre = grad_hidden.new_zeros(ctx.n_pre, hid).index_add_(0, receivers, grad_hidden)
+        return grad_pre, grad_edge, grad_neigh, grad_w1, None, None, None, None
 
 
 def max_aggregate(values: torch.Tensor, receivers: torch.Tensor, n_verts: int) -> torch.Tensor:
@@ -335,18 +394,15 @@ class EdgeConv(nn.Module):
         fa, fb = _flat_rows(a, n, n_batch), _flat_rows(b, n, n_batch)
         edge_term = _GatherMax.apply(x2, fa, fb) @ w0b[:, :c].T
         # Directed messages in the order: all (receiver a <- sender b), then all (b <- a), per batch element.
-        n_und = a.shape[0]
         receivers = _flat_rows(torch.cat((a, b)), n, n_batch)
         senders = _flat_rows(torch.cat((b, a)), n, n_batch)
-        pre = pre_vertex.index_select(0, receivers).view(n_batch, 2, n_und, hid)
-        pre = pre + edge_term.view(n_batch, 1, n_und, hid)
-        hidden = F.relu(pre).view(-1, hid)
-        messages = torch.addmm(neigh_term.index_select(0, senders), hidden, blk.fc1.weight.T)
         has_edge = torch.zeros(n, 1, dtype=x.dtype, device=x.device)
         has_edge[a] = 1
         has_edge[b] = 1
         n_winners = n_batch * out_ch * int(has_edge.sum())
-        aggregated = _MaxAggregate.apply(messages, receivers, n_batch * n, n_winners)
+        aggregated = _MessagesMax.apply(
+            pre_vertex, edge_term, neigh_term, blk.fc1.weight, receivers, senders, n_batch, n_winners
+        )
         out = aggregated.view(n_batch, n, out_ch) + self_term.view(n_batch, n, out_ch) * has_edge
         return out.view(*batch, n, out_ch)
 

@@ -57,7 +57,7 @@ class SyntheticConfig:
         Every shape is rotated about the vertical axis by a uniform angle in [-max_yaw_deg, max_yaw_deg].
     contact_margin
         Poses are backed off towards the rest pose until distinct body parts stay this far apart
-        (fraction of sqrt(area); at least one remeshed edge length is always kept).
+        (fraction of sqrt(area); at least half a remeshed edge length).
     test_fraction
         Fraction of subjects (``split="subject"``) or poses (``split="pose"``) per class held out for test.
     split
@@ -90,10 +90,10 @@ class SyntheticConfig:
     n_ref_points: int = 1000
     template_verts: int = 4000
     grid_step: float = 0.01
-    remesh_iterations: int = 10
-    length_std: float = 0.08
-    thickness_std: float = 0.08
-    build_std: float = 0.10
+    remesh_iterations: int = 6
+    length_std: float = 0.10
+    thickness_std: float = 0.10
+    build_std: float = 0.12
     pose_jitter_deg: float = 8.0
     subject_pose_jitter_deg: float = 4.0
     random_pose_range: float = 0.6

@@ -69,6 +69,9 @@ MAX_REMESH_ATTEMPTS = 6
 REMESH_COUNT_RTOL = 0.08
 #: Remesher runs per attempt (each corrects the edge length towards the target count).
 REMESH_ROUNDS = 2
+#: The fused surface (self-contact corruption) is sampled with this many grid cells per remeshed edge
+#: length (but never finer than ``grid_step``).
+FUSION_STEPS_PER_EDGE = 3.0
 #: Name of the parameter/fingerprint file of a generated folder.
 PARAMS_FILE = "params.json"
 #: Identifies folders written by this generator (only those are ever replaced).
@@ -231,7 +234,7 @@ def generate_shape(
     root_rotation = rotation_about(np.array([0.0, 0.0, 1.0]), yaw)
     edge = edge_length_for_count(area, n_target)
     margin = max(cfg.contact_margin * sqrt_area, CONTACT_MARGIN_EDGES * edge)
-    adjacency = plan.adjacency()
+    adjacency = template.part_adjacency
 
     def pose_fn(a: np.ndarray) -> np.ndarray:
         return blend_skin(rest, template.weights, pose_transforms(plan, heads, a, root_rotation))
@@ -249,8 +252,8 @@ def generate_shape(
         if fused:
             pairs = contact_fn(posed)
             mid = 0.5 * (posed[pairs[:, 0]] + posed[pairs[:, 1]])
-            surface = corruptions.fuse_contacts(posed, template.faces, mid, cfg.contact_merge_radius * sqrt_area,
-                                                cfg.grid_step)
+            step = max(cfg.grid_step, edge / FUSION_STEPS_PER_EDGE)
+            surface = corruptions.fuse_contacts(posed, template.faces, mid, cfg.contact_merge_radius * sqrt_area, step)
         verts, faces = remesh(surface[0], surface[1], n_target, iterations=cfg.remesh_iterations,
                               rtol=REMESH_COUNT_RTOL, max_rounds=REMESH_ROUNDS)
         face, bary, _ = trace_to_surface(verts, posed, template.faces)

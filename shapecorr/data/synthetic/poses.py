@@ -23,14 +23,14 @@ from shapecorr.errors import ConfigError
 HUMAN_KEY_POSES: tuple[tuple[str, dict[str, tuple[float, float, float]]], ...] = (
     ("neutral", {}),
     ("arms_up", {"upper_arm": (10, -105, 0), "forearm": (25, 0, 0), "neck": (-15, 0, 0)}),
-    ("squat", {"thigh": (95, -12, 0), "shin": (-115, 0, 0), "foot": (20, 0, 0), "spine": (25, 0, 0),
+    ("squat", {"thigh": (78, -15, 0), "shin": (-100, 0, 0), "foot": (20, 0, 0), "spine": (10, 0, 0),
                "upper_arm": (75, 15, 0), "forearm": (15, 0, 0)}),
     ("twist_t_pose", {"spine": (0, 0, 30), "chest": (0, 0, 30), "neck": (0, 0, 35), "upper_arm": (0, -45, 0)}),
-    ("step_reach", {"thigh_l": (60, 0, 0), "shin_l": (-75, 0, 0), "thigh_r": (-20, 0, 0), "upper_arm_r": (140, -15, 0),
+    ("step_reach", {"thigh_l": (60, 0, 0), "shin_l": (-75, 0, 0), "thigh_r": (-20, 0, 0), "upper_arm_r": (120, -25, 0),
                     "upper_arm_l": (-30, 0, 0), "forearm_l": (45, 0, 0), "chest": (0, 0, -20)}),
-    ("arms_crossed", {"upper_arm": (55, 20, 20), "forearm": (120, 0, 0), "head": (15, 0, 0)}),
-    ("side_bend", {"spine": (0, 25, 0), "chest": (0, 15, 0), "upper_arm_r": (0, -125, 0), "upper_arm_l": (0, 15, 0),
-                   "head": (0, 12, 0), "thigh_r": (0, -15, 0)}),
+    ("arms_crossed", {"upper_arm": (55, 20, 20), "forearm": (105, 0, 0), "head": (15, 0, 0)}),
+    ("side_bend", {"spine": (0, 25, 0), "chest": (0, 15, 0), "upper_arm_r": (0, -125, 0), "upper_arm_l": (15, -15, 0),
+                   "forearm_l": (30, 0, 0), "head": (0, 12, 0), "thigh_r": (0, -15, 0)}),
     ("kick", {"thigh_r": (80, 0, 0), "shin_r": (-20, 0, 0), "thigh_l": (-10, 0, 0), "upper_arm": (20, -30, 0),
               "spine": (-12, 0, 0), "forearm": (40, 0, 0)}),
     ("lunge_twist", {"thigh_l": (70, 0, 0), "shin_l": (-90, 0, 0), "thigh_r": (-25, 0, 0), "shin_r": (-40, 0, 0),
@@ -47,23 +47,25 @@ HUMAN_KEY_POSES: tuple[tuple[str, dict[str, tuple[float, float, float]]], ...] =
 #: Key poses of the quadruped (same conventions; for the trunk, ref points down, so flex > 0 bends ventrally).
 QUAD_KEY_POSES: tuple[tuple[str, dict[str, tuple[float, float, float]]], ...] = (
     ("stand", {}),
-    ("walk", {"upper_arm_l": (30, 0, 0), "forearm_l": (45, 0, 0), "upper_arm_r": (-20, 0, 0), "thigh_l": (-25, 0, 0),
-              "thigh_r": (35, 0, 0), "shin_r": (-30, 0, 0), "head": (10, 0, 0), "tail_base": (0, 20, 0)}),
-    ("crouch", {"thigh": (50, 0, 0), "shin": (-70, 0, 0), "upper_arm": (-30, 0, 0), "forearm": (60, 0, 0),
-                "neck": (-30, 0, 0), "tail_base": (30, 0, 0)}),
-    ("play_bow", {"upper_arm": (60, 0, 0), "forearm": (-10, 0, 0), "spine": (15, 0, 0), "neck": (25, 0, 0),
-                  "tail_base": (-40, 0, 0), "tail_tip": (-20, 0, 0)}),
-    ("curl_look_back", {"neck": (0, 40, 0), "head": (0, 25, 0), "spine": (0, 20, 0), "chest": (0, 15, 0),
-                        "tail_base": (0, 40, 0), "tail_tip": (0, 30, 0)}),
-    ("paw_raise", {"upper_arm_l": (50, 0, 0), "forearm_l": (95, 0, 0), "hand_l": (40, 0, 0), "head": (0, 0, 20),
-                   "neck": (-15, 10, 0)}),
-    ("gallop", {"upper_arm": (60, 0, 0), "forearm": (-10, 0, 0), "thigh": (-40, 0, 0), "shin": (10, 0, 0),
-                "neck": (-20, 0, 0), "tail_base": (-25, 0, 0)}),
-    ("scratch", {"thigh_r": (60, -20, 0), "shin_r": (-60, 0, 0), "neck": (0, -35, 0), "head": (0, -20, 0)}),
-    ("alert", {"neck": (-35, 0, 0), "head": (-10, 0, 0), "tail_base": (-45, 0, 0), "tail_tip": (-30, 0, 0),
-               "upper_arm": (-15, 0, 0)}),
-    ("stretch", {"upper_arm": (55, 0, 0), "thigh": (-35, 0, 0), "spine": (-12, 0, 0), "neck": (-10, 0, 0),
-                 "tail_base": (0, -30, 0)}),
+    ("gallop", {"upper_arm": (70, 0, 0), "hand": (-30, 0, 0), "thigh": (-40, -10, 0), "shin": (25, 0, 0),
+                "foot": (30, 0, 0), "spine": (-15, 0, 0), "neck": (-35, 0, 0), "tail_base": (-40, 0, 0),
+                "tail_tip": (-20, 0, 0)}),
+    ("curl_look_back", {"neck": (0, 40, 0), "head": (0, 25, 0), "spine": (0, 25, 0), "chest": (0, 20, 0),
+                        "tail_base": (0, 50, 0), "tail_tip": (0, 50, 0)}),
+    ("play_bow", {"upper_arm": (70, 0, 0), "forearm": (-10, 0, 0), "spine": (18, 0, 0), "neck": (30, 0, 0),
+                  "tail_base": (-45, 0, 0), "tail_tip": (-30, 0, 0)}),
+    ("stretch", {"upper_arm": (60, 0, 0), "thigh": (-40, 0, 0), "spine": (-15, 0, 0), "neck": (-20, 0, 0),
+                 "tail_base": (0, -40, 0), "tail_tip": (0, -30, 0)}),
+    ("walk", {"upper_arm_l": (35, 0, 0), "forearm_l": (50, 0, 0), "upper_arm_r": (-25, 0, 0), "thigh_l": (-30, 0, 0),
+              "thigh_r": (25, 0, 0), "shin_r": (-35, 0, 0), "head": (10, 0, 0), "tail_base": (0, 30, 0)}),
+    ("paw_raise", {"upper_arm_l": (60, 0, 0), "forearm_l": (80, 0, 0), "hand_l": (50, 0, 0), "head": (0, 0, 25),
+                   "neck": (-25, 15, 0), "tail_base": (-30, -20, 0)}),
+    ("crouch", {"thigh": (30, 0, 0), "shin": (-55, 0, 0), "upper_arm": (-30, 0, 0), "forearm": (60, 0, 0),
+                "neck": (-35, 0, 0), "tail_base": (40, 0, 0)}),
+    ("scratch", {"thigh_r": (35, -25, 0), "shin_r": (-60, 0, 0), "neck": (0, -40, 0), "head": (0, -25, 0),
+                 "spine": (0, -15, 0)}),
+    ("alert", {"neck": (-40, 0, 0), "head": (-20, 0, 0), "tail_base": (-50, 0, 0), "tail_tip": (-40, 0, 0),
+               "upper_arm": (-25, 0, 0), "forearm": (20, 0, 0)}),
 )
 
 #: Key pose libraries by body plan name.
@@ -162,10 +164,10 @@ def find_contacts(
 ) -> np.ndarray:
     """Pairs of template vertices that come into contact in a pose although they are far apart on the body.
 
-    A pair counts when its posed distance is below ``margin`` and either its body parts are not adjacent in
-    the skeleton (and it was farther than ``2 * margin`` in the rest pose: a new contact, not the seam
-    between the parts), or the parts are adjacent but the vertices were farther than ``adjacent_reach``
-    apart in the rest pose (an arm lying on the chest, not the inside of a bent elbow).
+    A pair counts when its posed distance is below ``margin`` and either its body parts do not touch on the
+    rest surface (and it was farther than ``2 * margin`` in the rest pose), or the parts touch but the
+    vertices were farther than ``adjacent_reach`` apart in the rest pose (an arm lying on the chest, not
+    the inside of a bent elbow or hip).
 
     Parameters
     ----------
@@ -174,7 +176,7 @@ def find_contacts(
     part : (n,) int
         Body part (dominant bone) of every vertex.
     adjacency : (B, B) bool
-        Parts sharing a joint.
+        Parts that touch on the rest surface (``Template.part_adjacency``).
     margin, adjacent_reach : float
 
     Returns

@@ -153,15 +153,6 @@ class BodyPlan:
                     out[i] = names.index(name[: -len(a)] + b)
         return out
 
-    def adjacency(self) -> np.ndarray:
-        """``(B, B)`` bool: bones that share a joint (parent/child) or are the same bone."""
-        n = len(self.bones)
-        adj = np.eye(n, dtype=bool)
-        for i, p in enumerate(self.parents):
-            if p >= 0:
-                adj[i, p] = adj[p, i] = True
-        return adj
-
 
 def bone_frames(heads: np.ndarray, tails: np.ndarray, refs: np.ndarray) -> np.ndarray:
     """Right-handed orthonormal bone frames ``[lat, ref, axis]``.
@@ -256,7 +247,7 @@ def _human() -> BodyPlan:
         ("upper_arm", "chest", t(shoulder), t(elbow), fwd, ((-50, 150), (-110, 40), (-60, 60)), True),
         ("forearm", "upper_arm", t(elbow), t(wrist), fwd, ((0, 135), (-5, 5), (-30, 30)), True),
         ("hand", "forearm", t(wrist), t(hand_end), fwd, ((-60, 60), (-25, 25), (-20, 20)), True),
-        ("thigh", "pelvis", hip, knee, fwd, ((-30, 110), (-45, 20), (-30, 30)), True),
+        ("thigh", "pelvis", hip, knee, fwd, ((-30, 110), (-45, 10), (-30, 30)), True),
         ("shin", "thigh", knee, ankle, fwd, ((-135, 0), (-3, 3), (-10, 10)), True),
         ("foot", "shin", ankle, toe, up, ((-40, 25), (-15, 15), (-15, 15)), True),
     ]
@@ -290,10 +281,10 @@ def _quadruped() -> BodyPlan:
         ("head", "neck", (0.0, 0.52, 0.86), (0.0, 0.80, 0.82), down, ((-30, 30), (-25, 25), (-25, 25)), False),
         ("tail_base", "pelvis", (0.0, -0.50, 0.62), (0.0, -0.70, 0.58), down, ((-40, 50), (-50, 50), (-10, 10)), False),
         ("tail_tip", "tail_base", (0.0, -0.70, 0.58), (0.0, -0.88, 0.46), down, ((-40, 50), (-50, 50), (-10, 10)), False),
-        ("upper_arm", "chest", (0.11, 0.30, 0.56), (0.12, 0.27, 0.33), fwd, ((-50, 70), (-30, 15), (-15, 15)), True),
+        ("upper_arm", "chest", (0.11, 0.30, 0.56), (0.12, 0.27, 0.33), fwd, ((-50, 70), (-30, 5), (-15, 15)), True),
         ("forearm", "upper_arm", (0.12, 0.27, 0.33), (0.12, 0.30, 0.09), fwd, ((-10, 120), (-8, 8), (-10, 10)), True),
         ("hand", "forearm", (0.12, 0.30, 0.09), (0.12, 0.39, 0.03), up, ((-40, 60), (-10, 10), (-10, 10)), True),
-        ("thigh", "pelvis", (0.11, -0.36, 0.56), (0.12, -0.27, 0.34), fwd, ((-40, 70), (-30, 15), (-15, 15)), True),
+        ("thigh", "pelvis", (0.11, -0.36, 0.56), (0.12, -0.27, 0.34), fwd, ((-40, 70), (-30, 5), (-15, 15)), True),
         ("shin", "thigh", (0.12, -0.27, 0.34), (0.12, -0.38, 0.14), fwd, ((-90, 30), (-8, 8), (-10, 10)), True),
         ("foot", "shin", (0.12, -0.38, 0.14), (0.12, -0.31, 0.03), fwd, ((-40, 50), (-10, 10), (-10, 10)), True),
     ]
@@ -301,7 +292,7 @@ def _quadruped() -> BodyPlan:
     sided = {s[0] for s in specs if s[6]}
     prims = [
         Primitive("pelvis", "ellipsoid", (0.0, -0.33, 0.59), radii=(0.125, 0.14, 0.17)),
-        Primitive("spine", "ellipsoid", (0.0, -0.06, 0.61), radii=(0.13, 0.15, 0.24)),
+        Primitive("spine", "ellipsoid", (0.0, -0.06, 0.63), radii=(0.115, 0.125, 0.24)),
         Primitive("chest", "ellipsoid", (0.0, 0.22, 0.60), radii=(0.14, 0.18, 0.20)),
         Primitive("neck", "cone", (0.0, 0.34, 0.64), (0.0, 0.54, 0.88), 0.085, 0.065),
         Primitive("head", "ellipsoid", (0.0, 0.58, 0.88), radii=(0.085, 0.09, 0.11)),

@@ -61,6 +61,9 @@ class Template:
         Bone each vertex was assigned to before diffusion (the body part it belongs to).
     mirror : (n,) int64
         Template vertex nearest to the mirror image (x -> -x) of each vertex.
+    part_adjacency : (B, B) bool
+        Body parts (dominant-bone regions) at most two steps apart on the surface: the same part, parts
+        sharing a mesh edge, or parts both touching a third one (thigh and belly both touch the pelvis).
     """
 
     plan: BodyPlan
@@ -69,6 +72,7 @@ class Template:
     weights: np.ndarray
     dominant: np.ndarray
     mirror: np.ndarray
+    part_adjacency: np.ndarray
 
     @property
     def n_verts(self) -> int:
@@ -261,7 +265,31 @@ def build_template(
     verts, faces = remesh(verts, faces, n_verts, iterations=remesh_iterations, rtol=TEMPLATE_COUNT_RTOL)
     _check_sphere(plan.name, verts, faces, "after remeshing")
     weights, dominant = skinning_weights(plan, verts, faces, blend=skin_blend)
-    return Template(plan, verts, faces, weights, dominant, mirror_map(verts))
+    return Template(plan, verts, faces, weights, dominant, mirror_map(verts), part_adjacency(faces, dominant, len(plan.bones)))
+
+
+def part_adjacency(faces: np.ndarray, part: np.ndarray, n_parts: int) -> np.ndarray:
+    """Which body parts are neighbours on the surface (within two steps).
+
+    Parameters
+    ----------
+    faces : (f, 3) int
+    part : (n,) int
+        Part of every vertex.
+    n_parts : int
+
+    Returns
+    -------
+    (n_parts, n_parts) bool, symmetric, true on the diagonal: parts at most two steps apart in the graph
+    of parts sharing a mesh edge.
+    """
+    f = np.asarray(faces, np.int64)
+    a = part[np.concatenate([f[:, 0], f[:, 1], f[:, 2]])]
+    b = part[np.concatenate([f[:, 1], f[:, 2], f[:, 0]])]
+    adj = np.eye(n_parts, dtype=np.int64)
+    adj[a, b] = 1
+    adj[b, a] = 1
+    return (adj @ adj) > 0
 
 
 def _check_sphere(name: str, verts: np.ndarray, faces: np.ndarray, stage: str) -> None:
