@@ -74,8 +74,9 @@ class ShapePairDataModule(pl.LightningDataModule):
     prepare_workers
         Processes computing missing cache entries before training (default: all CPUs).
     synthetic
-        If given, the options of :class:`shapecorr.data.synthetic.SyntheticConfig`: the folder ``root`` is
-        generated on first use (the embedded default dataset).
+        If given, ``preset`` (default | tiny | large) plus any options of
+        :class:`shapecorr.data.synthetic.SyntheticConfig`: the folder ``root`` is generated on first use
+        (the embedded default dataset).
     shuffle_seed
         Seed of the training-pair shuffling generator (reproducible epochs).
     """
@@ -130,9 +131,12 @@ class ShapePairDataModule(pl.LightningDataModule):
     def ensure_data(self) -> None:
         """Generate the synthetic folder if this module is configured with one and it is missing."""
         if self.synthetic is not None:
-            from shapecorr.data.synthetic import SyntheticConfig, ensure_synthetic_dataset
+            from shapecorr.data.synthetic import SyntheticConfig, ensure_synthetic_dataset, preset
 
-            ensure_synthetic_dataset(self.root, _dataclass_from(SyntheticConfig, self.synthetic))
+            options = dict(self.synthetic)
+            name = options.pop("preset", "default")
+            _dataclass_from(SyntheticConfig, options)  # rejects unknown option names with the list of valid ones
+            ensure_synthetic_dataset(self.root, preset(name, **options))
 
     def shapes(self, split: str) -> ShapeDataset:
         """The :class:`ShapeDataset` of a split (built once)."""
