@@ -188,7 +188,8 @@ def main(argv=None) -> int:
         entry["map_agreement_x_to_y"] = float((ours == orig["map_x_to_y"]).mean())
         entry["map_agreement_y_to_x"] = float((ours_inv == orig["map_y_to_x"]).mean())
         default_match = deep_shells_query(feats["x"], feats["y"], x, y, default_cfg)
-        entry["map_agreement_x_to_y_default_flags"] = float((default_match.map_x_to_y.numpy() == orig["map_x_to_y"]).mean())
+        entry["map_agreement_x_to_y_default_flags"] = float(
+            (default_match.map_x_to_y.numpy() == orig["map_x_to_y"]).mean())
 
         if args.faust_r:
             root = Path(args.faust_r) / "corres"

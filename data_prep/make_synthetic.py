@@ -117,10 +117,12 @@ def parse_options(tokens: list[str]) -> tuple[dict, SyntheticConfig]:
     return script, preset(script["preset"], **overrides)
 
 
-def render_preview(root: Path, png: Path, shapes=PREVIEW_SHAPES, dpi: int = 80) -> Path:
+def render_preview(root: Path, png: Path, shapes=PREVIEW_SHAPES, dpi: int = 100) -> Path:
     """Render a row of generated shapes (headless matplotlib, flat shading) into a PNG.
 
-    Shapes missing from the folder are skipped. Returns the PNG path.
+    When the folder has dense ground truth, vertices are coloured by the position of their template point
+    (per class), so the same colour marks the same body point on every shape. Shapes missing from the folder
+    are skipped. Returns the PNG path.
     """
     import matplotlib
 
@@ -136,29 +138,47 @@ def render_preview(root: Path, png: Path, shapes=PREVIEW_SHAPES, dpi: int = 80) 
     if not names:
         raise ConfigError("no shape to preview in the folder", root)
     light = np.array([0.35, -0.6, 0.7]) / np.linalg.norm([0.35, -0.6, 0.7])
-    fig = plt.figure(figsize=(1.5 * len(names), 2.4))
+    fig = plt.figure(figsize=(1.45 * len(names), 2.5))
     for i, name in enumerate(names):
         verts, faces = read_mesh(root / "off" / f"{name}.off")
+        colors = _body_point_colors(root, name, len(verts))
         tri = verts[faces]
         normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         normal /= np.linalg.norm(normal, axis=1, keepdims=True) + 1e-12
-        shade = 0.3 + 0.7 * np.clip(normal @ light, 0.0, 1.0)
-        base = np.array([0.55, 0.65, 0.9]) if name.startswith("human") else np.array([0.9, 0.65, 0.45])
+        shade = 0.35 + 0.65 * np.clip(normal @ light, 0.0, 1.0)
         ax = fig.add_subplot(1, len(names), i + 1, projection="3d")
-        ax.add_collection3d(Poly3DCollection(tri, facecolors=shade[:, None] * base, edgecolors="none"))
+        ax.add_collection3d(Poly3DCollection(tri, facecolors=np.clip(shade[:, None] * colors[faces].mean(1), 0, 1),
+                                             edgecolors="none"))
         centre, radius = (verts.max(0) + verts.min(0)) / 2, (verts.max(0) - verts.min(0)).max() / 2
         for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre):
             setter(c - radius, c + radius)
         ax.view_init(elev=12, azim=-65)
-        ax.set_box_aspect((1, 1, 1))
+        ax.set_box_aspect((1, 1, 1), zoom=1.35)
         ax.set_axis_off()
-        ax.set_title(f"{name}\n{len(verts)} vertices", fontsize=6)
-    fig.subplots_adjust(0, 0, 1, 0.9, 0, 0)
+        ax.set_title(f"{name}\n{len(verts)} vertices", fontsize=7, y=0.95)
+    fig.subplots_adjust(0, 0, 1, 0.92, 0, 0)
     png = Path(png)
     png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(png, dpi=dpi)
     plt.close(fig)
     return png
+
+
+def _body_point_colors(root: Path, name: str, n_verts: int):
+    """Per-vertex RGB from the dense ground truth (template position -> colour), grey without it."""
+    import numpy as np
+
+    from shapecorr.data.io import read_mesh
+
+    cls = name.split("_")[0]
+    dense, template = root / "dense" / f"{name}.npz", root / "templates" / f"{cls}.off"
+    if not (dense.is_file() and template.is_file()):
+        return np.full((n_verts, 3), 0.7)
+    t_verts, t_faces = read_mesh(template)
+    lo, hi = t_verts.min(0), t_verts.max(0)
+    t_colors = 0.15 + 0.8 * (t_verts - lo) / (hi - lo)
+    with np.load(dense, allow_pickle=False) as gt:
+        return np.einsum("nj,njk->nk", gt["template_bary"], t_colors[t_faces[gt["template_face"]]])
 
 
 def main(argv: list[str] | None = None) -> int:

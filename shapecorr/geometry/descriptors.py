@@ -37,6 +37,7 @@ import math
 import numpy as np
 
 from shapecorr.errors import ConfigError, NumericalError
+from shapecorr.geometry.laplacian import _as_numpy
 
 #: HKS default time range (Sun et al. 2009, §5): t_min = 4 ln 10 / lambda_max, t_max = 4 ln 10 / lambda_min
 #: (lambda_min the smallest nonzero eigenvalue used): exp(-t lambda) spans 1e-4 .. 1 over the used band.
@@ -54,8 +55,8 @@ NORMALIZATIONS = ("none", "sum", "mean")
 
 
 def _inputs(evals, evecs, skip_zero: bool) -> tuple[np.ndarray, np.ndarray]:
-    lam = np.asarray(evals.detach().cpu() if hasattr(evals, "detach") else evals, dtype=np.float64)
-    phi = np.asarray(evecs.detach().cpu() if hasattr(evecs, "detach") else evecs, dtype=np.float64)
+    lam = np.asarray(_as_numpy(evals), dtype=np.float64)
+    phi = np.asarray(_as_numpy(evecs), dtype=np.float64)
     if lam.ndim != 1 or phi.ndim != 2 or phi.shape[1] != lam.shape[0]:
         raise ConfigError(f"need evals (k,) and evecs (n, k), got {lam.shape} and {phi.shape}")
     if not (np.isfinite(lam).all() and np.isfinite(phi).all()):
@@ -83,7 +84,7 @@ def _normalize(values: np.ndarray, filt: np.ndarray, normalize: str, mass) -> np
     if normalize == "mean":
         if mass is None:
             raise ConfigError("normalize='mean' needs the vertex masses (mass=...)")
-        m = np.asarray(mass.detach().cpu() if hasattr(mass, "detach") else mass, dtype=np.float64)
+        m = np.asarray(_as_numpy(mass), dtype=np.float64)
         if m.shape != (values.shape[0],):
             raise ConfigError(f"mass must have shape ({values.shape[0]},), got {m.shape}")
         values = values * m.sum()
@@ -111,7 +112,7 @@ def hks_times(evals, n_times: int = HKS_N_TIMES, t_min: float | None = None, t_m
     -------
     (n_times,) float64, ascending
     """
-    lam = np.asarray(evals, dtype=np.float64)
+    lam = np.asarray(_as_numpy(evals), dtype=np.float64)
     if skip_zero:
         lam = lam[lam > ZERO_EVAL_RTOL * lam.max()] if lam.size and lam.max() > 0 else lam[:0]
     if n_times < 1:
@@ -178,7 +179,7 @@ def wks_energies(evals, n_energies: int = WKS_N_ENERGIES, variance: float = WKS_
     energies : (n_energies,) float64
     sigma : float
     """
-    lam = np.asarray(evals, dtype=np.float64)
+    lam = np.asarray(_as_numpy(evals), dtype=np.float64)
     if skip_zero:
         lam = lam[lam > ZERO_EVAL_RTOL * lam.max()] if lam.size and lam.max() > 0 else lam[:0]
     if n_energies < 2:

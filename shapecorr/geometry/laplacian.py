@@ -57,14 +57,14 @@ LAPLACIAN_METHODS = ("cotan", "robust")
 # --- eigen solver settings (project choices, measured in benchmarks/geometry_speed.py) -------------------
 #: Relative shift of the first shift-invert solve: sigma = -EIGSH_SHIFT_REL * mean(diag(A)). Slightly below
 #: zero so that L - sigma M is positive definite while the zero eigenvalues stay the nearest ones (the
-#: MATLAB code used an absolute 1e-5 on area-0.44 shapes, ~1e-9 relative to the same quantity).
+#: MATLAB code used an absolute shift of 1e-5 on area-0.44 shapes; relative here, so any unit works).
 EIGSH_SHIFT_REL = 1e-8
 #: ARPACK convergence tolerance (relative accuracy of the Ritz values of the inverted operator).
 EIGSH_TOL = 1e-10
 #: Eigenpairs computed per shift-invert solve ("spectral slice"). ARPACK's cost grows with the square of the
 #: number of requested pairs (one 500-pair run on a 5k-vertex FAUST_r shape: 15 s, 12 s of it in the
 #: eigenvector extraction dseupd), so many pairs are computed as several slices at increasing shifts
-#: (500 pairs: ~2.5 s of CPU). 40-60 measured best on FAUST_r (benchmarks/geometry_speed.py).
+#: (500 pairs: ~2 s of CPU). 40-60 measured best on FAUST_r (benchmarks/geometry_speed.py).
 EIGSH_SLICE_SIZE = 50
 #: Lanczos basis size per slice: ncv = max(EIGSH_NCV_FACTOR * m + 1, m + EIGSH_NCV_MIN_EXTRA). scipy's
 #: default factor is 2; 1.3-1.45 was ~20% faster on FAUST_r (fewer BLAS-2 orthogonalization steps).
@@ -170,7 +170,8 @@ def laplacian(verts, faces, method: str = "cotan") -> tuple[sp.csr_matrix, np.nd
         mass = np.zeros(n)
         mass[: diag.shape[0]] = diag
         if not np.isfinite(L.data).all():
-            bad = np.unique(L.nonzero()[0][~np.isfinite(L.data)])
+            coo = L.tocoo()
+            bad = np.unique(coo.row[~np.isfinite(coo.data)])
             raise InvalidMeshError(
                 f"cotangent Laplacian has infinite weights around {len(bad)} vertices (first {bad[:5].tolist()}): "
                 "the mesh has zero-area faces; use method='robust' or clean the mesh"
@@ -193,11 +194,16 @@ def eigenbasis(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ``k`` lowest Laplace-Beltrami eigenpairs: ``L phi = lambda M phi``.
 
-    Solved in float64: ``A = M^-1/2 L M^-1/2`` (M is diagonal) with shift-invert ARPACK
-    (``scipy.sparse.linalg.eigsh``) around a shift slightly below zero, using a sparse LU of
-    ``A - sigma I``; many pairs are computed as several shift-invert "slices" at increasing shifts (much
-    faster than one ARPACK run, see ``EIGSH_SLICE_SIZE``), small problems densely with LAPACK. The sliced
-    result is checked (residuals) and falls back to a single ARPACK run if the check fails.
+    Solved in float64 as the standard problem for ``A = M^-1/2 L M^-1/2`` (M is diagonal) with
+    shift-invert ARPACK (``scipy.sparse.linalg.eigsh`` with a sparse LDL^T of ``A - sigma I`` as
+    ``OPinv``), first around a shift slightly below zero. Many pairs are computed as consecutive
+    shift-invert "slices" at increasing shifts (much faster than one ARPACK run, see ``EIGSH_SLICE_SIZE``),
+    each verified to be complete by Sylvester's law of inertia (missed copies of multiple eigenvalues are
+    searched again by deflation); see :func:`_sliced_eigsh`. Meshes up to ``DENSE_MAX_N`` vertices (or
+    ``k > DENSE_MAX_K_FRACTION * n``) are solved densely with LAPACK; if the sliced solve cannot be
+    verified or its residuals are too large, the dense solve is the fallback (up to
+    ``DENSE_FALLBACK_MAX_N`` vertices, else NumericalError). BLAS runs single-threaded during the solve
+    when ``threadpoolctl`` is installed (see :func:`_single_threaded_blas`).
 
     Parameters
     ----------

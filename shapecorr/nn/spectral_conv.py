@@ -256,7 +256,8 @@ class SpectralFilterBank(nn.Module):
         self.num_eigs = int(num_eigs)
         self.max_frequency = float(max_frequency)
         self.layers = nn.ModuleList(
-            SpectralConv(c_in, c_out, num_basis, num_eigs, max_frequency) for c_in, c_out in zip(widths[:-1], widths[1:])
+            SpectralConv(c_in, c_out, num_basis, num_eigs, max_frequency)
+            for c_in, c_out in zip(widths[:-1], widths[1:])
         )
         self.activation = _ACTIVATIONS[activation]()
 

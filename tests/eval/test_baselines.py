@@ -10,7 +10,13 @@ import torch
 
 from shapecorr.errors import ConfigError, CorrespondenceError, NumericalError
 from shapecorr.eval import protocol
-from shapecorr.matching.baselines import DescriptorNN, IdentityGT, PrecomputedMaps, nearest_neighbors
+from shapecorr.matching.baselines import (
+    DescriptorNN,
+    IdentityGT,
+    PrecomputedMaps,
+    nearest_neighbors,
+    nearest_neighbors_both_ways,
+)
 from shapecorr.matching.result import Matcher, MatchResult
 
 
@@ -77,9 +83,15 @@ def test_identity_gt_without_vts_uses_identity(spheres):
 
 def test_nearest_neighbors_matches_brute_force():
     g = torch.Generator().manual_seed(0)
-    a, b = torch.randn(300, 5, generator=g), torch.randn(200, 5, generator=g)
-    expected = torch.cdist(a, b).argmin(dim=1)
-    assert torch.equal(nearest_neighbors(a, b, chunk_rows=37), expected)
+    a, b = torch.randn(300, 5, generator=g, dtype=torch.float64), torch.randn(200, 5, generator=g, dtype=torch.float64)
+    dist = torch.cdist(a, b)
+    assert torch.equal(nearest_neighbors(a, b, chunk_rows=37), dist.argmin(dim=1))
+    for chunk in (1, 37, 1000):
+        ab, ba = nearest_neighbors_both_ways(a, b, chunk_rows=chunk)
+        assert torch.equal(ab, dist.argmin(dim=1)) and torch.equal(ba, dist.argmin(dim=0))
+    # ties go to the lowest index, across chunks too
+    dup = torch.cat([b[:1], b[:1]])
+    assert nearest_neighbors_both_ways(dup, b[:3], chunk_rows=1)[1][0] == 0
 
 
 @pytest.mark.parametrize("normalize", ["none", "l2", "standardize"])

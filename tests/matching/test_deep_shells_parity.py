@@ -51,9 +51,8 @@ def _load(pair: str):
     data = {}
     for side, name in zip("xy", pair.split("__")):
         data[side] = dict(
-            shape=make_spectral_shape(torch.from_numpy(inputs[f"{side}_verts"]), torch.from_numpy(inputs[f"{side}_faces"]),
-                                      torch.from_numpy(inputs[f"{side}_evecs"]), torch.from_numpy(inputs[f"{side}_mass"]),
-                                      name=name),
+            shape=make_spectral_shape(*(torch.from_numpy(inputs[f"{side}_{key}"])
+                                        for key in ("verts", "faces", "evecs", "mass")), name=name),
             shot=torch.from_numpy(inputs[f"{side}_shot"]),
             # the golden eigenvalues are in the original doubled (full cot) convention
             evals=torch.from_numpy(inputs[f"{side}_evals"]) / 2.0,

@@ -59,9 +59,12 @@ CONTACT_MARGIN_EDGES = 0.5
 #: Contacts between adjacent body parts (the inside of a bent knee or elbow) count only between
 #: vertices that were at least this far apart in the rest pose (fraction of sqrt(area)).
 ADJACENT_CONTACT_REACH = 0.15
-#: A remeshed edge whose endpoints trace back to template points farther apart than this many target
-#: edge lengths (in the rest pose) bridges two body parts: the pose is backed off and remeshed again.
+#: A remeshed edge whose endpoints trace back to template points farther apart (in the rest pose) than
+#: this many target edge lengths, and than BRIDGE_MIN_LENGTH x sqrt(area), bridges two body parts: the
+#: pose is backed off and remeshed again. Shorter bridges across the crease of a bent knee or elbow (where
+#: linear blend skinning folds the surface into itself) are accepted, like skin folds in a scan.
 BRIDGE_EDGE_FACTOR = 4.0
+BRIDGE_MIN_LENGTH = 0.1
 #: Remeshing attempts per shape before giving up with an error.
 MAX_REMESH_ATTEMPTS = 6
 #: The remesher stops when the count is within this fraction of the drawn target (one run is usually
@@ -258,7 +261,7 @@ def generate_shape(
                               rtol=REMESH_COUNT_RTOL, max_rounds=REMESH_ROUNDS)
         face, bary, _ = trace_to_surface(verts, posed, template.faces)
         rest_pos = interpolate(rest, template.faces, face, bary)
-        if fused or _bridging_edges(faces, rest_pos, BRIDGE_EDGE_FACTOR * edge) == 0:
+        if fused or _bridging_edges(faces, rest_pos, max(BRIDGE_EDGE_FACTOR * edge, BRIDGE_MIN_LENGTH * sqrt_area)) == 0:
             break
         angles = angles * poses.CONTACT_BACKOFF
         backoffs += 1

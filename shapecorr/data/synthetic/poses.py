@@ -23,8 +23,8 @@ from shapecorr.errors import ConfigError
 HUMAN_KEY_POSES: tuple[tuple[str, dict[str, tuple[float, float, float]]], ...] = (
     ("neutral", {}),
     ("arms_up", {"upper_arm": (10, -105, 0), "forearm": (25, 0, 0), "neck": (-15, 0, 0)}),
-    ("squat", {"thigh": (78, -15, 0), "shin": (-100, 0, 0), "foot": (20, 0, 0), "spine": (10, 0, 0),
-               "upper_arm": (75, 15, 0), "forearm": (15, 0, 0)}),
+    ("squat", {"thigh": (75, -15, 0), "shin": (-100, 0, 0), "foot": (20, 0, 0), "spine": (10, 0, 0),
+               "upper_arm": (75, 0, 0), "forearm": (15, 0, 0)}),
     ("twist_t_pose", {"spine": (0, 0, 30), "chest": (0, 0, 30), "neck": (0, 0, 35), "upper_arm": (0, -45, 0)}),
     ("step_reach", {"thigh_l": (60, 0, 0), "shin_l": (-75, 0, 0), "thigh_r": (-20, 0, 0), "upper_arm_r": (120, -25, 0),
                     "upper_arm_l": (-30, 0, 0), "forearm_l": (45, 0, 0), "chest": (0, 0, -20)}),
