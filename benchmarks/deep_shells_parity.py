@@ -214,7 +214,7 @@ def main(argv=None) -> int:
                 fy = net(shot["y"], y.evecs, evals["y"], y.mass, rows=sy)
                 out = deep_shells_layer(fx, fy, x, y, sx, sy, cfg)
                 out.loss.backward()
-                return float(out.loss)
+                return out.loss.item()
             return run
 
         wall, cpu, _ = _timed(train_step(original_cfg), args.repeats)

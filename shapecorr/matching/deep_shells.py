@@ -653,6 +653,50 @@ def _full_embedding(shape_x, shape_y, k, fmap, tau, fac_spec, fac_norm, config, 
     return emb_x, emb_y, deformed
 
 
+def product_embedding_maps(
+    shape_x: SpectralShape,
+    shape_y: SpectralShape,
+    fmap: torch.Tensor,
+    tau: torch.Tensor,
+    config: DeepShellsConfig = DeepShellsConfig(),
+    fac_spec: float | None = None,
+    fac_norm: float | None = None,
+) -> DeepShellsMatch:
+    """Hard maps by bidirectional nearest neighbours in the full-resolution product embedding of a level.
+
+    The shell size is ``k = fmap.shape[0]``; e.g. ``fmap``, ``tau`` of :class:`DeepShellsOutput` give the
+    hard maps of the last training level (what G-MSM queries use), those of the first OT level the initial
+    maps of the Deep Shells test pipeline.
+
+    Parameters
+    ----------
+    shape_x, shape_y : SpectralShape
+    fmap : (k, k) float
+    tau : (k, 3) float
+    config : DeepShellsConfig
+        Shell conventions and nearest-neighbour backend.
+    fac_spec, fac_norm : float, optional
+        Embedding weights; default ``config.fac_spec``, ``config.fac_norm`` (the training ones).
+
+    Returns
+    -------
+    DeepShellsMatch
+    """
+    k = int(fmap.shape[0])
+    if fmap.shape != (k, k) or tau.shape != (k, 3):
+        raise ConfigError(f"product_embedding_maps: need fmap (k, k) and tau (k, 3), got {tuple(fmap.shape)}, "
+                          f"{tuple(tau.shape)}")
+    _check_eigs(shape_x, (k,), config)
+    _check_eigs(shape_y, (k,), config)
+    fac_spec = config.fac_spec if fac_spec is None else fac_spec
+    fac_norm = config.fac_norm if fac_norm is None else fac_norm
+    with torch.no_grad():
+        fmap, tau = fmap.detach().to(shape_x.evecs.dtype), tau.detach().to(shape_x.evecs.dtype)
+        emb_x, emb_y, deformed = _full_embedding(shape_x, shape_y, k, fmap, tau, fac_spec, fac_norm, config)
+        map_x_to_y, map_y_to_x = bidirectional_nearest_neighbors(emb_x, emb_y, backend=config.nn_backend)
+    return DeepShellsMatch(map_x_to_y=map_x_to_y, map_y_to_x=map_y_to_x, fmap=fmap, tau=tau, deformed_x=deformed)
+
+
 def refine_deep_shells(
     shape_x: SpectralShape,
     shape_y: SpectralShape,
@@ -761,10 +805,7 @@ def deep_shells_query(
             _shell(shape_y, k, "sigmoid", incl, rows=samples_y), config.ridge,
         )
         del plan, plan_adj
-        emb_x, emb_y, deformed = _full_embedding(shape_x, shape_y, k, fmap, tau, config.fac_spec,
-                                                 config.fac_norm, config)
-        map_x_to_y, map_y_to_x = bidirectional_nearest_neighbors(emb_x, emb_y, backend=config.nn_backend)
+    coarse = product_embedding_maps(shape_x, shape_y, fmap, tau, config)
     if not refine:
-        return DeepShellsMatch(map_x_to_y=map_x_to_y, map_y_to_x=map_y_to_x, fmap=fmap, tau=tau,
-                               deformed_x=deformed)
-    return refine_deep_shells(shape_x, shape_y, map_x_to_y, map_y_to_x, config)
+        return coarse
+    return refine_deep_shells(shape_x, shape_y, coarse.map_x_to_y, coarse.map_y_to_x, config)

@@ -23,8 +23,11 @@ from shapecorr.data.cache import atomic_open
 from shapecorr.errors import CorrespondenceError, InvalidMeshError
 from shapecorr.eval.metrics import as_numpy as _np
 
-#: Camera: elevation and azimuth in degrees and the axis pointing up (FAUST/SCAPE shapes stand along +y).
-DEFAULT_VIEW = (10.0, -90.0, "y")
+#: Camera: elevation and azimuth in degrees and the axis pointing up (FAUST/SCAPE shapes stand along +y;
+#: azimuth 0 then shows a FAUST person from the front).
+DEFAULT_VIEW = (10.0, 0.0, "y")
+#: Magnification of the 3-D axes box inside its panel (1 = matplotlib's default, which leaves wide margins).
+RENDER_ZOOM = 1.6
 #: Light direction in view-independent world coordinates (towards the viewer and slightly from above).
 LIGHT_DIRECTION = (0.3, 0.5, 1.0)
 #: Shading: ambient fraction of the color, the rest scaled by |cos(normal, light)|.
@@ -119,7 +122,7 @@ def draw_mesh(ax, verts, faces, vertex_colors, view=DEFAULT_VIEW, title: str | N
     radius = float((v.max(0) - v.min(0)).max()) / 2.0 or 1.0
     for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), center):
         setter(c - radius, c + radius)
-    ax.set_box_aspect((1.0, 1.0, 1.0))
+    ax.set_box_aspect((1.0, 1.0, 1.0), zoom=RENDER_ZOOM)
     elev, azim, vertical = view
     ax.view_init(elev=elev, azim=azim, vertical_axis=vertical)
     ax.set_axis_off()

@@ -292,9 +292,9 @@ def test_composed_vts_error_is_at_the_vertex_spacing_for_every_pair(tiny_shapes)
 def test_ground_truth_within_one_percent(tiny_templates):
     """Composing the vts files of any two shapes gives < 1% of sqrt(area) mean geodesic error against the
     exact (template) correspondence. Needs ~3000-vertex shapes: the error of a vertex-to-vertex ground truth
-    is about 0.4 x the mean edge length, ~1% at 1.5k vertices."""
+    is about 0.4 x the mean edge length (0.6-1.05% at the default 1.5k-2.5k vertices, ~0.75% here)."""
     cfg = preset("tiny", n_human_subjects=2, n_human_poses=2, n_quad_subjects=1, n_quad_poses=2,
-                 n_verts_min=3000, n_verts_max=3300)
+                 n_verts_min=2800, n_verts_max=3000)
     templates, refs = tiny_templates
     shapes = [generate_shape(s, cfg, templates[s.cls], *refs[s.cls]) for s in shape_specs(cfg)]
     pairs = 0

@@ -26,6 +26,7 @@ from shapecorr.matching.deep_shells import (
     deformation_from_plans,
     log_spaced_k,
     make_spectral_shape,
+    product_embedding_maps,
     random_samples,
     refine_deep_shells,
 )
@@ -302,6 +303,17 @@ def test_layer_recovers_the_map_from_good_features(pair):
     assert err < 1.6
     # the deformed shell of X lands on the shell of Y
     assert float((out.deformed_x - out.plan @ out.shell_y).norm(dim=1).mean()) < pair["edge"]
+
+
+def test_hard_maps_from_the_last_training_level(pair):
+    # G-MSM style query: nearest neighbours in the full-resolution embedding of the layer's last level
+    sx, sy = _samples(pair)
+    out = deep_shells_layer(pair["feat_x"][sx], pair["feat_y"][sy], pair["x"], pair["y"], sx, sy)
+    match = product_embedding_maps(pair["x"], pair["y"], out.fmap, out.tau)
+    assert match.map_x_to_y.shape == (pair["x"].n_verts,) and match.map_y_to_x.shape == (pair["y"].n_verts,)
+    assert _map_error(pair, match.map_x_to_y) < 1.0  # one coarse level (k = 21), no refinement
+    with pytest.raises(ConfigError):
+        product_embedding_maps(pair["x"], pair["y"], out.fmap, out.tau[:5])
 
 
 def test_loss_decreases_when_features_improve(pair):

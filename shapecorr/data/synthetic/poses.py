@@ -31,7 +31,7 @@ HUMAN_KEY_POSES: tuple[tuple[str, dict[str, tuple[float, float, float]]], ...] =
     ("arms_crossed", {"upper_arm": (55, 20, 20), "forearm": (105, 0, 0), "head": (15, 0, 0)}),
     ("side_bend", {"spine": (0, 25, 0), "chest": (0, 15, 0), "upper_arm_r": (0, -125, 0), "upper_arm_l": (15, -15, 0),
                    "forearm_l": (30, 0, 0), "head": (0, 12, 0), "thigh_r": (0, -15, 0)}),
-    ("kick", {"thigh_r": (80, 0, 0), "shin_r": (-20, 0, 0), "thigh_l": (-10, 0, 0), "upper_arm": (20, -30, 0),
+    ("kick", {"thigh_r": (70, 0, 0), "shin_r": (-20, 0, 0), "thigh_l": (-10, 0, 0), "upper_arm": (20, -30, 0),
               "spine": (-12, 0, 0), "forearm": (40, 0, 0)}),
     ("lunge_twist", {"thigh_l": (70, 0, 0), "shin_l": (-90, 0, 0), "thigh_r": (-25, 0, 0), "shin_r": (-40, 0, 0),
                      "chest": (0, 0, 25), "spine": (0, 0, 15), "upper_arm_l": (-20, -20, 0),
@@ -47,9 +47,9 @@ HUMAN_KEY_POSES: tuple[tuple[str, dict[str, tuple[float, float, float]]], ...] =
 #: Key poses of the quadruped (same conventions; for the trunk, ref points down, so flex > 0 bends ventrally).
 QUAD_KEY_POSES: tuple[tuple[str, dict[str, tuple[float, float, float]]], ...] = (
     ("stand", {}),
-    ("gallop", {"upper_arm": (70, 0, 0), "hand": (-30, 0, 0), "thigh": (-40, -10, 0), "shin": (25, 0, 0),
-                "foot": (30, 0, 0), "spine": (-15, 0, 0), "neck": (-35, 0, 0), "tail_base": (-40, 0, 0),
-                "tail_tip": (-20, 0, 0)}),
+    ("gallop", {"upper_arm": (70, 0, 0), "forearm": (-10, 0, 0), "hand": (-30, 0, 0), "thigh": (-40, -10, 0),
+                "shin": (30, 0, 0), "foot": (40, 0, 0), "spine": (-20, 0, 0), "chest": (-15, 0, 0),
+                "neck": (-40, 0, 0), "head": (-20, 0, 0), "tail_base": (-40, 0, 0), "tail_tip": (-35, 0, 0)}),
     ("curl_look_back", {"neck": (0, 40, 0), "head": (0, 25, 0), "spine": (0, 25, 0), "chest": (0, 20, 0),
                         "tail_base": (0, 50, 0), "tail_tip": (0, 50, 0)}),
     ("play_bow", {"upper_arm": (70, 0, 0), "forearm": (-10, 0, 0), "spine": (18, 0, 0), "neck": (30, 0, 0),
@@ -89,6 +89,8 @@ CONTACT_POSES: dict[str, tuple[tuple[str, dict[str, tuple[float, float, float]]]
     ),
 }
 
+#: Pose jitter never exceeds this fraction of a joint angle's range of motion (std).
+JITTER_MAX_RANGE_FRACTION = 0.12
 #: Contact resolution: joint angles are scaled by this factor towards the (contact-free) rest pose until
 #: no self-contact remains.
 CONTACT_BACKOFF = 0.85
@@ -150,8 +152,14 @@ def pose_base(plan: BodyPlan, pose_index: int, shared_rng: np.random.Generator, 
 
 
 def jitter(plan: BodyPlan, angles: np.ndarray, rng: np.random.Generator, std_deg: float) -> np.ndarray:
-    """Add Gaussian noise of ``std_deg`` degrees to every angle, then clip to the limits."""
-    return clip_to_limits(plan, angles + rng.normal(size=angles.shape) * std_deg)
+    """Add Gaussian noise to every angle, then clip to the limits.
+
+    The standard deviation is ``std_deg``, but at most :data:`JITTER_MAX_RANGE_FRACTION` of the joint's range
+    of motion for that angle (a knee's 16-degree sideways play is not jittered by as much as its flexion).
+    """
+    lim = plan.limits
+    std = np.minimum(std_deg, JITTER_MAX_RANGE_FRACTION * (lim[..., 1] - lim[..., 0]))
+    return clip_to_limits(plan, angles + rng.normal(size=angles.shape) * std)
 
 
 def find_contacts(

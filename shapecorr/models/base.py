@@ -1,0 +1,111 @@
+"""Plumbing shared by every learned correspondence model (LightningModule).
+
+A concrete model implements ``training_step`` (features -> matching -> loss -> ``self.log``) and ``match``
+(the matcher protocol of :mod:`shapecorr.matching.result`). This base class adds what every model needs:
+
+- validation and test steps that run ``match`` on the pair, score the map with the evaluation protocol
+  (:func:`shapecorr.eval.protocol.score_map`: geodesic error / sqrt(area) against the ground truth) and log
+  ``val/geodesic_error`` (``test/geodesic_error``), the conformal distortion and the time per pair;
+- at the end of a validation epoch a PCK-curve figure and the colored correspondence of the first validation
+  pair (TensorBoard meshes + a headless render), when the logger is TensorBoard;
+- ``required_operators``: the per-shape data the model needs (eigenpairs, descriptors), merged into the data
+  module's operator config by ``train.py`` / ``evaluate.py``.
+
+Geodesic matrices come from the data module's shape cache; a small in-memory LRU keeps the few shapes of the
+validation set.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+
+from shapecorr.eval import metrics
+from shapecorr.eval.protocol import score_map
+from shapecorr.matching.result import MatchResult
+from shapecorr.viz.tensorboard import log_correspondence_meshes, log_pck_figure
+
+#: Geodesic matrices kept in memory by a model during validation/test (100 MB each at 5k vertices).
+GEODESIC_LRU_SIZE = 8
+
+
+class CorrespondenceModule(pl.LightningModule):
+    """Base class of the learned models; see the module docstring."""
+
+    #: OperatorConfig changes the model needs from the data (overridden by subclasses).
+    required_operators: dict = {}
+
+    def __init__(self):
+        super().__init__()
+        self._geodesics: OrderedDict[tuple[str, str], np.ndarray] = OrderedDict()
+        self._eval_errors: dict[str, list[np.ndarray]] = {"val": [], "test": []}
+        self._first_val_pair = None
+
+    # -- to implement --------------------------------------------------------------------------------------
+    def match(self, x, y) -> MatchResult:  # pragma: no cover - abstract
+        """Point-to-point map x -> y (see :mod:`shapecorr.matching.result`)."""
+        raise NotImplementedError
+
+    # -- evaluation ----------------------------------------------------------------------------------------
+    def _geodesic_matrix(self, split: str, sample) -> np.ndarray:
+        key = (split, sample.name)
+        if key in self._geodesics:
+            self._geodesics.move_to_end(key)
+            return self._geodesics[key]
+        shapes = self.trainer.datamodule.shapes(split)
+        dist = shapes.geodesics(shapes.index(sample.name))
+        self._geodesics[key] = dist
+        while len(self._geodesics) > GEODESIC_LRU_SIZE:
+            self._geodesics.popitem(last=False)
+        return dist
+
+    def _evaluate_pair(self, batch, split: str) -> dict:
+        start = time.perf_counter()
+        result = self.match(batch.x, batch.y)
+        seconds = time.perf_counter() - start
+        scores = score_map(result.p2p, batch.x, batch.y, self._geodesic_matrix(split, batch.y))
+        self._eval_errors[split].append(scores["errors"])
+        log = dict(batch_size=1, on_epoch=True, on_step=False, sync_dist=True)
+        self.log(f"{split}/geodesic_error", float(np.mean(scores["errors"])), prog_bar=True, **log)
+        self.log(f"{split}/conformal_distortion", float(scores["conformal_distortion"]), **log)
+        self.log(f"{split}/seconds_per_pair", seconds, **log)
+        if scores["errors_sym"] is not None:
+            self.log(f"{split}/geodesic_error_sym", float(np.mean(scores["errors_sym"])), **log)
+        return {"result": result, **scores}
+
+    def validation_step(self, batch, batch_idx: int):
+        out = self._evaluate_pair(batch, "val")
+        if batch_idx == 0:
+            self._first_val_pair = (batch, out["result"].p2p)
+
+    def test_step(self, batch, batch_idx: int):
+        self._evaluate_pair(batch, "test")
+
+    def on_validation_epoch_start(self) -> None:
+        self._eval_errors["val"] = []
+
+    def on_test_epoch_start(self) -> None:
+        self._eval_errors["test"] = []
+
+    def on_validation_epoch_end(self) -> None:
+        errors = self._eval_errors["val"]
+        if not errors or self.trainer.sanity_checking:
+            return
+        all_errors = np.concatenate(errors)
+        t, frac = metrics.pck_curve(all_errors)
+        self.log("val/pck_auc", metrics.pck_auc(t, frac), sync_dist=True)
+        if self.global_rank == 0 and self.logger is not None:
+            log_pck_figure(self.logger, all_errors, step=self.global_step)
+            if self._first_val_pair is not None:
+                batch, p2p = self._first_val_pair
+                x, y = batch.x.shape, batch.y.shape
+                log_correspondence_meshes(self.logger, x.verts, x.faces, y.verts, y.faces, p2p, step=self.global_step)
+
+    def test_errors(self) -> np.ndarray:
+        """Per-reference-point errors of the last test run, concatenated over pairs."""
+        errors = self._eval_errors["test"]
+        return np.concatenate(errors) if errors else np.zeros(0)
