@@ -95,7 +95,9 @@ def _summary(metrics: dict, out: Path, wall: float) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--faust-r", default=os.environ.get("SHAPECORR_FAUST_R"), help="FAUST_r folder ($SHAPECORR_FAUST_R)")
+    parser.add_argument(
+        "--faust-r", default=os.environ.get("SHAPECORR_FAUST_R"), help="FAUST_r folder (default $SHAPECORR_FAUST_R)"
+    )
     parser.add_argument("--cache-dir", default=None, help="shape cache (default: paths.cache_dir of the configs)")
     parser.add_argument("--work-dir", default=str(REPO / "outputs" / "bench_eval_baselines"), help="evaluation outputs")
     parser.add_argument("--workers", type=int, default=0, help="CPU worker processes of evaluate.py")

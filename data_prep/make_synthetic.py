@@ -82,7 +82,8 @@ def _convert(name: str, text: str, kind) -> object:
             return float(text)
         return text
     except ValueError:
-        raise ConfigError(f"option {name}={text!r}: expected a value of type {getattr(kind, '__name__', kind)}") from None
+        expected = getattr(kind, "__name__", kind)
+        raise ConfigError(f"option {name}={text!r}: expected a value of type {expected}") from None
 
 
 def parse_options(tokens: list[str]) -> tuple[dict, SyntheticConfig]:

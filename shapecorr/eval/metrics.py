@@ -180,9 +180,7 @@ def ground_truth_indices(corres_x, corres_y, n_x: int, n_y: int, faces_x=None, f
         return ref_x, ref_y
     if corres_x is None and corres_y is None:
         same = n_x == n_y and (
-            faces_x is None
-            or faces_y is None
-            or (as_numpy(faces_x).shape == as_numpy(faces_y).shape and np.array_equal(as_numpy(faces_x), as_numpy(faces_y)))
+            faces_x is None or faces_y is None or np.array_equal(as_numpy(faces_x), as_numpy(faces_y))
         )
         if same:
             ident = np.arange(n_x, dtype=np.int64)

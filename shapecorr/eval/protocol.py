@@ -226,7 +226,9 @@ def is_done(out_dir: str | os.PathLike, source: str, target: str) -> bool:
     return js.is_file() and npz.is_file()
 
 
-def write_record(out_dir: str | os.PathLike, record: PairRecord, errors: np.ndarray, errors_sym: np.ndarray | None) -> None:
+def write_record(
+    out_dir: str | os.PathLike, record: PairRecord, errors: np.ndarray, errors_sym: np.ndarray | None
+) -> None:
     """Write a pair's errors then its record (atomic files; the record marks the pair as done)."""
     js, npz = record_paths(out_dir, record.source, record.target)
     js.parent.mkdir(parents=True, exist_ok=True)
@@ -239,7 +241,9 @@ def write_record(out_dir: str | os.PathLike, record: PairRecord, errors: np.ndar
         fh.write(json.dumps(asdict(record), indent=1).encode())
 
 
-def load_record(out_dir: str | os.PathLike, source: str, target: str) -> tuple[PairRecord, np.ndarray, np.ndarray | None]:
+def load_record(
+    out_dir: str | os.PathLike, source: str, target: str
+) -> tuple[PairRecord, np.ndarray, np.ndarray | None]:
     """Read back ``(record, errors, errors_sym)`` of a done pair."""
     js, npz = record_paths(out_dir, source, target)
     try:
@@ -248,7 +252,8 @@ def load_record(out_dir: str | os.PathLike, source: str, target: str) -> tuple[P
             errors = data["errors"].astype(np.float64)
             errors_sym = data["errors_sym"].astype(np.float64) if "errors_sym" in data.files else None
     except (OSError, ValueError, KeyError, TypeError) as err:
-        raise CorrespondenceError(f"unreadable evaluation record ({err}); delete it to recompute the pair", js) from None
+        problem = f"unreadable evaluation record ({err}); delete it to recompute the pair"
+        raise CorrespondenceError(problem, js) from None
     return record, errors, errors_sym
 
 
@@ -305,7 +310,8 @@ class PairEvaluator:
         _synchronize(self.device)
         seconds = time.perf_counter() - t0
         if result is None or not hasattr(result, "p2p"):
-            raise ConfigError(f"{type(self.matcher).__name__}.match returned {type(result).__name__}, not a MatchResult")
+            kind = type(result).__name__
+            raise ConfigError(f"{type(self.matcher).__name__}.match returned {kind}, not a MatchResult")
         result = result.cpu().validate(x.shape.n_verts, y.shape.n_verts, name)
         scores = score_map(result.p2p, x, y, self.geodesics(j), self.settings.conformal_clamp)
         extra: dict[str, float | None] = {}

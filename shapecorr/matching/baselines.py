@@ -158,7 +158,8 @@ class DescriptorNN:
             )
         if feats.ndim != 2 or feats.shape[0] != sample.shape.n_verts:
             raise ConfigError(
-                f"{self.descriptor} of {sample.name!r} has shape {tuple(feats.shape)}, expected ({sample.shape.n_verts}, c)"
+                f"{self.descriptor} of {sample.name!r} has shape {tuple(feats.shape)}, "
+                f"expected ({sample.shape.n_verts}, c)"
             )
         if not torch.isfinite(feats).all():
             raise NumericalError(f"the {self.descriptor} descriptor of {sample.name!r} contains NaN or infinite values")
@@ -228,7 +229,8 @@ class PrecomputedMaps:
                 raise CorrespondenceError(f"the map has {p2p.shape[0]} entries but {x.name} has {n_x} vertices", path)
             if p2p.size and (p2p.min() < 0 or p2p.max() >= n_y):
                 raise CorrespondenceError(
-                    f"map indices in [{p2p.min()}, {p2p.max()}] are outside 0..{n_y - 1} ({y.name} has {n_y} vertices)", path
+                    f"map indices in [{p2p.min()}, {p2p.max()}] are outside 0..{n_y - 1} ({y.name} has {n_y} vertices)",
+                    path,
                 )
         else:
             from shapecorr.data.io import read_map

@@ -68,7 +68,9 @@ def transfer_colors(colors_y, p2p) -> np.ndarray:
     """
     colors_y, p2p = _np(colors_y), _np(p2p).astype(np.int64)
     if p2p.size and (p2p.min() < 0 or p2p.max() >= colors_y.shape[0]):
-        raise CorrespondenceError(f"map indices in [{p2p.min()}, {p2p.max()}] exceed the {colors_y.shape[0]} target vertices")
+        raise CorrespondenceError(
+            f"map indices in [{p2p.min()}, {p2p.max()}] exceed the {colors_y.shape[0]} target vertices"
+        )
     return colors_y[p2p]
 
 
@@ -130,7 +132,9 @@ def draw_mesh(ax, verts, faces, vertex_colors, view=DEFAULT_VIEW, title: str | N
         ax.set_title(title, fontsize="small")
 
 
-def correspondence_figure(verts_x, faces_x, verts_y, faces_y, p2p, title: str | None = None, view=DEFAULT_VIEW, names=("source", "target")) -> Figure:
+def correspondence_figure(
+    verts_x, faces_x, verts_y, faces_y, p2p, title: str | None = None, view=DEFAULT_VIEW, names=("source", "target")
+) -> Figure:
     """Texture-transfer figure of a map x -> y: source (colors pulled back through the map) | target.
 
     Parameters
@@ -156,7 +160,8 @@ def correspondence_figure(verts_x, faces_x, verts_y, faces_y, p2p, title: str | 
     colors_y = coordinate_colors(verts_y)
     colors_x = transfer_colors(colors_y, p2p)
     fig = Figure(figsize=(2 * PANEL_SIZE[0], PANEL_SIZE[1]), dpi=RENDER_DPI)
-    for k, (v, f, c, name) in enumerate(((verts_x, faces_x, colors_x, names[0]), (verts_y, faces_y, colors_y, names[1]))):
+    panels = ((verts_x, faces_x, colors_x, names[0]), (verts_y, faces_y, colors_y, names[1]))
+    for k, (v, f, c, name) in enumerate(panels):
         ax = fig.add_subplot(1, 2, k + 1, projection="3d")
         draw_mesh(ax, v, f, c, view=view, title=name)
     if title:
@@ -183,6 +188,16 @@ def save_figure(fig: Figure, path: str | os.PathLike) -> Path:
     return path
 
 
-def render_correspondence(path: str | os.PathLike, verts_x, faces_x, verts_y, faces_y, p2p, title: str | None = None, view=DEFAULT_VIEW, names=("source", "target")) -> Path:
+def render_correspondence(
+    path: str | os.PathLike,
+    verts_x,
+    faces_x,
+    verts_y,
+    faces_y,
+    p2p,
+    title: str | None = None,
+    view=DEFAULT_VIEW,
+    names=("source", "target"),
+) -> Path:
     """Write the texture-transfer image of a map x -> y (see :func:`correspondence_figure`) to a PNG."""
     return save_figure(correspondence_figure(verts_x, faces_x, verts_y, faces_y, p2p, title, view, names), path)

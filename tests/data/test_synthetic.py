@@ -192,7 +192,8 @@ def test_topology_report_detects_defects():
 def test_vertex_counts_in_range_and_triangulations_independent(tiny_shapes, tiny_cfg):
     shapes = list(tiny_shapes.values())
     for s in shapes:
-        assert abs(len(s.verts) - np.clip(len(s.verts), tiny_cfg.n_verts_min, tiny_cfg.n_verts_max)) <= 0.1 * tiny_cfg.n_verts_max
+        # The remesher reaches the drawn count within REMESH_COUNT_RTOL (8%).
+        assert 0.9 * tiny_cfg.n_verts_min <= len(s.verts) <= 1.1 * tiny_cfg.n_verts_max
     for x, y in itertools.combinations(shapes, 2):
         assert not (len(x.faces) == len(y.faces) and np.array_equal(x.faces, y.faces))
         if x.spec.cls != y.spec.cls or x.spec.subject != y.spec.subject:
@@ -209,6 +210,7 @@ def test_vertex_counts_in_range_and_triangulations_independent(tiny_shapes, tiny
 
 
 def _faces_of(shape):
+    """Template faces of a tiny-preset shape (class_templates is cached per process)."""
     return class_templates(preset("tiny"))[shape.spec.cls].faces
 
 
@@ -245,8 +247,8 @@ def test_identities_differ_and_poses_are_near_isometric(tiny_shapes):
         assert min(other) > max(same)
         # Identity alone (rest poses) changes the intrinsic metric by several percent.
         a, b = shapes[0], next(s for s in shapes if s.spec.subject != shapes[0].spec.subject)
-        ra = geodesic_distances(a.rest_template, faces, sources=sources)[:, sources] / _sqrt_area(a.rest_template, faces)
-        rb = geodesic_distances(b.rest_template, faces, sources=sources)[:, sources] / _sqrt_area(b.rest_template, faces)
+        ra, rb = (geodesic_distances(s.rest_template, faces, sources=sources)[:, sources]
+                  / _sqrt_area(s.rest_template, faces) for s in (a, b))
         assert np.abs(ra - rb)[off].mean() / ra[off].mean() > 0.04
 
 
@@ -361,7 +363,8 @@ def test_flex_turns_bone_towards_ref_and_root_rotation_is_rigid(tiny_templates):
     templates, _ = tiny_templates
     t = templates["human"]
     yaw = skinning.rotation_about(np.array([0.0, 0.0, 1.0]), 0.7)
-    moved = skinning.blend_skin(t.verts, t.weights, skinning.pose_transforms(plan, plan.heads, np.zeros((len(plan.bones), 3)), yaw))
+    rest_angles = np.zeros((len(plan.bones), 3))
+    moved = skinning.blend_skin(t.verts, t.weights, skinning.pose_transforms(plan, plan.heads, rest_angles, yaw))
     edges = t.faces[:, :2]
     np.testing.assert_allclose(np.linalg.norm(moved[edges[:, 0]] - moved[edges[:, 1]], axis=1),
                                np.linalg.norm(t.verts[edges[:, 0]] - t.verts[edges[:, 1]], axis=1), atol=1e-12)
@@ -372,7 +375,8 @@ def test_symmetric_angles_give_mirror_symmetric_pose(tiny_templates):
     for template in templates.values():
         plan = template.plan
         _, angles = poses.key_pose(plan, 1)  # arms_up / gallop: symmetric key poses
-        posed = skinning.blend_skin(template.verts, template.weights, skinning.pose_transforms(plan, plan.heads, angles))
+        transforms = skinning.pose_transforms(plan, plan.heads, angles)
+        posed = skinning.blend_skin(template.verts, template.weights, transforms)
         mirrored = posed[template.mirror] * np.array([-1.0, 1.0, 1.0])
         edge = edge_length_for_count(template.area, template.n_verts)
         assert np.median(np.linalg.norm(mirrored - posed, axis=1)) < 0.5 * edge

@@ -33,7 +33,8 @@ def test_match_result_validation():
         MatchResult(p2p=torch.tensor([0, 1, 1]), p2p_inv=torch.tensor([0, 5])).validate(3, 2)
     with pytest.raises(CorrespondenceError, match="frame times"):
         MatchResult(p2p=torch.tensor([0]), deformation=torch.zeros(2, 1, 3))
-    bad = MatchResult(p2p=torch.tensor([0]), deformation=torch.full((2, 1, 3), float("nan")), times=torch.tensor([0.0, 1.0]))
+    nan = torch.full((2, 1, 3), float("nan"))
+    bad = MatchResult(p2p=torch.tensor([0]), deformation=nan, times=torch.tensor([0.0, 1.0]))
     with pytest.raises(NumericalError):
         bad.validate(1, 1)
 

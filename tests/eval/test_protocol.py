@@ -97,7 +97,9 @@ def test_parallel_workers_give_the_same_records(spheres, tmp_path):
     parallel = protocol.evaluate_pairs(
         MapMatcher(spheres, "mirror"), spheres, pairs, tmp_path / "b", workers=2, start_method="fork", progress=False
     )
-    strip = lambda rs: [(r.source, r.target, r.mean_error, r.mean_error_sym, r.conformal_distortion) for r in rs]  # noqa: E731
+    def strip(rs):
+        return [(r.source, r.target, r.mean_error, r.mean_error_sym, r.conformal_distortion) for r in rs]
+
     assert strip(serial) == strip(parallel)
     assert all(r.mean_error_sym == 0.0 for r in parallel)
 

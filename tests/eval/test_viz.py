@@ -46,7 +46,8 @@ def test_render_correspondence_shows_errors(spheres, tmp_path):
     assert img.shape[0] > 100 and img.std() > 10  # something was drawn
     assert np.abs(left - right).mean() < 1.0
     mirror = spheres.mirror_map(0, 0)
-    _, left_m, right_m = _halves(render.render_correspondence(tmp_path / "flip.png", v, f, v, f, mirror, names=("", "")))
+    flipped = render.render_correspondence(tmp_path / "flip.png", v, f, v, f, mirror, names=("", ""))
+    _, left_m, right_m = _halves(flipped)
     assert np.abs(left_m - right_m).mean() > 5 * max(np.abs(left - right).mean(), 0.1)
     with pytest.raises(CorrespondenceError):
         render.correspondence_figure(v, f, v, f, ident[:-1])
@@ -93,4 +94,5 @@ def test_tensorboard_helpers_with_other_loggers(spheres, tmp_path):
     with SummaryWriter(tmp_path) as writer:
         tb = LoggerLike(writer)
         assert summary_writer(tb) is writer
-        assert log_correspondence_meshes(tb, x.verts, x.faces, x.verts, x.faces, torch.arange(162), 0, render_image=False)
+        ident = torch.arange(162)
+        assert log_correspondence_meshes(tb, x.verts, x.faces, x.verts, x.faces, ident, 0, render_image=False)

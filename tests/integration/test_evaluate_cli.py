@@ -113,14 +113,16 @@ def test_maps_dir_mode_reproduces_errors(tiny, tmp_path):
     first = evaluate(_cfg(tiny, tmp_path / "eval1", f"maps_dir={src}", "n_examples=0"))
     assert first["mean_geodesic_error"] > 0.1
     # the maps evaluate.py wrote are read back (as .npy, and one-based as .map) to the same numbers
-    second = evaluate(_cfg(tiny, tmp_path / "eval2", f"maps_dir={tmp_path / 'eval1' / 'maps'}", "maps_extension=npy", "n_examples=0"))
+    written = tmp_path / "eval1" / "maps"
+    second = evaluate(_cfg(tiny, tmp_path / "eval2", f"maps_dir={written}", "maps_extension=npy", "n_examples=0"))
     assert second["mean_geodesic_error"] == first["mean_geodesic_error"]
     one_based = tmp_path / "one_based"
     one_based.mkdir()
     for f in src.glob("*.txt"):
         np.savetxt(one_based / f"{f.stem}.map", np.loadtxt(f, dtype=np.int64) + 1, fmt="%d")
-    third = evaluate(_cfg(tiny, tmp_path / "eval3", f"maps_dir={one_based}", "maps_extension=map", "maps_one_based=true",
-                          "n_examples=0"))
+    third = evaluate(
+        _cfg(tiny, tmp_path / "eval3", f"maps_dir={one_based}", "maps_extension=map", "maps_one_based=true", "n_examples=0")
+    )
     assert third["mean_geodesic_error"] == first["mean_geodesic_error"]
 
 

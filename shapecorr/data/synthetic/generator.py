@@ -243,7 +243,8 @@ def generate_shape(
         return blend_skin(rest, template.weights, pose_transforms(plan, heads, a, root_rotation))
 
     def contact_fn(posed: np.ndarray) -> np.ndarray:
-        return poses.find_contacts(posed, rest, template.dominant, adjacency, margin, ADJACENT_CONTACT_REACH * sqrt_area)
+        reach = ADJACENT_CONTACT_REACH * sqrt_area
+        return poses.find_contacts(posed, rest, template.dominant, adjacency, margin, reach)
 
     backoffs = 0
     for attempt in range(MAX_REMESH_ATTEMPTS):
@@ -261,7 +262,8 @@ def generate_shape(
                               rtol=REMESH_COUNT_RTOL, max_rounds=REMESH_ROUNDS)
         face, bary, _ = trace_to_surface(verts, posed, template.faces)
         rest_pos = interpolate(rest, template.faces, face, bary)
-        if fused or _bridging_edges(faces, rest_pos, max(BRIDGE_EDGE_FACTOR * edge, BRIDGE_MIN_LENGTH * sqrt_area)) == 0:
+        bridge = max(BRIDGE_EDGE_FACTOR * edge, BRIDGE_MIN_LENGTH * sqrt_area)
+        if fused or _bridging_edges(faces, rest_pos, bridge) == 0:
             break
         angles = angles * poses.CONTACT_BACKOFF
         backoffs += 1
@@ -271,7 +273,8 @@ def generate_shape(
 
     if not fused:
         report = topology_report(verts, faces)
-        if not (report["watertight"] and report["vertex_manifold"] and report["genus"] == 0 and report["components"] == 1):
+        closed = report["watertight"] and report["vertex_manifold"]
+        if not (closed and report["genus"] == 0 and report["components"] == 1):
             raise InvalidMeshError(f"{spec.name}: remeshed surface is not a closed manifold genus-0 surface: {report}")
 
     # Shuffle vertex and face order (and the starting corner of every face) so that no index is shared.
@@ -434,8 +437,10 @@ def readme_text(cfg: SyntheticConfig, splits: dict[str, list[str]], templates: d
     """The README.txt of a generated folder: how it was made and how to read it."""
     options = "\n".join(f"  {k} = {v!r}" for k, v in cfg.to_dict().items())
     counts = ", ".join(f"{c}: {t.n_verts} vertices" for c, t in templates.items())
-    return f"""Synthetic deformable creatures with dense ground truth (shapecorr {GENERATOR_NAME}, version {GENERATOR_VERSION})
-======================================================================================
+    return f"""Synthetic deformable creatures with dense ground truth
+======================================================
+
+Generator: {GENERATOR_NAME}, version {GENERATOR_VERSION}, fingerprint {cfg.fingerprint()}.
 
 Generated procedurally by `python data_prep/make_synthetic.py out=DIR seed={cfg.seed} ...` (or
 shapecorr.data.synthetic.ensure_synthetic_dataset). Same options and seed -> byte-identical files.

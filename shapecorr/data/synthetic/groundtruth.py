@@ -33,7 +33,9 @@ from shapecorr.errors import ConfigError, NumericalError
 CHART_ANGLE_WEIGHT = 0.5
 
 
-def trace_to_surface(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def trace_to_surface(
+    points: np.ndarray, verts: np.ndarray, faces: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest point of each query point on a triangle mesh, as a face index and barycentric coordinates.
 
     Parameters

@@ -143,7 +143,9 @@ def random_pose(plan: BodyPlan, rng: np.random.Generator, range_fraction: float)
     return lim[..., 0] + rng.random(lim.shape[:2]) * (lim[..., 1] - lim[..., 0])
 
 
-def pose_base(plan: BodyPlan, pose_index: int, shared_rng: np.random.Generator, range_fraction: float) -> tuple[str, np.ndarray]:
+def pose_base(
+    plan: BodyPlan, pose_index: int, shared_rng: np.random.Generator, range_fraction: float
+) -> tuple[str, np.ndarray]:
     """Base angles of pose ``pose_index``: the key pose of that index, else a random pose (shared rng)."""
     library = KEY_POSES[plan.name]
     if pose_index < len(library):

@@ -99,7 +99,9 @@ class BodyPlan:
         seen: set[str] = set()
         for bone in self.bones:
             if bone.parent is not None and bone.parent not in seen:
-                raise ConfigError(f"body plan {self.name!r}: bone {bone.name!r} listed before its parent {bone.parent!r}")
+                raise ConfigError(
+                    f"body plan {self.name!r}: bone {bone.name!r} listed before its parent {bone.parent!r}"
+                )
             seen.add(bone.name)
         for prim in self.primitives:
             if prim.bone not in seen:
@@ -280,7 +282,8 @@ def _quadruped() -> BodyPlan:
         ("neck", "chest", (0.0, 0.36, 0.66), (0.0, 0.52, 0.86), down, ((-40, 45), (-40, 40), (-30, 30)), False),
         ("head", "neck", (0.0, 0.52, 0.86), (0.0, 0.80, 0.82), down, ((-30, 30), (-25, 25), (-25, 25)), False),
         ("tail_base", "pelvis", (0.0, -0.50, 0.62), (0.0, -0.70, 0.58), down, ((-40, 50), (-50, 50), (-10, 10)), False),
-        ("tail_tip", "tail_base", (0.0, -0.70, 0.58), (0.0, -0.88, 0.46), down, ((-40, 50), (-50, 50), (-10, 10)), False),
+        ("tail_tip", "tail_base", (0.0, -0.70, 0.58), (0.0, -0.88, 0.46), down, ((-40, 50), (-50, 50), (-10, 10)),
+         False),
         ("upper_arm", "chest", (0.135, 0.30, 0.56), (0.145, 0.27, 0.33), fwd, ((-50, 70), (-30, 5), (-15, 15)), True),
         ("forearm", "upper_arm", (0.145, 0.27, 0.33), (0.145, 0.30, 0.09), fwd, ((-10, 120), (-8, 8), (-10, 10)), True),
         ("hand", "forearm", (0.145, 0.30, 0.09), (0.145, 0.39, 0.03), up, ((-40, 60), (-10, 10), (-10, 10)), True),

@@ -265,7 +265,8 @@ def build_template(
     verts, faces = remesh(verts, faces, n_verts, iterations=remesh_iterations, rtol=TEMPLATE_COUNT_RTOL)
     _check_sphere(plan.name, verts, faces, "after remeshing")
     weights, dominant = skinning_weights(plan, verts, faces, blend=skin_blend)
-    return Template(plan, verts, faces, weights, dominant, mirror_map(verts), part_adjacency(faces, dominant, len(plan.bones)))
+    adjacency = part_adjacency(faces, dominant, len(plan.bones))
+    return Template(plan, verts, faces, weights, dominant, mirror_map(verts), adjacency)
 
 
 def part_adjacency(faces: np.ndarray, part: np.ndarray, n_parts: int) -> np.ndarray:
