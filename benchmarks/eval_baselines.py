@@ -43,22 +43,14 @@ def _cpu_model() -> str:
 
 
 def _versions() -> dict[str, str]:
-    import hydra
-    import numpy
-    import potpourri3d  # noqa: F401 - heat geodesics
-    import scipy
-    import torch
+    from importlib import metadata
 
-    import shapecorr
-
-    out = {"python": platform.python_version(), "torch": torch.__version__, "numpy": numpy.__version__,
-           "scipy": scipy.__version__, "hydra": hydra.__version__, "shapecorr": shapecorr.__version__}
-    try:
-        import igl
-
-        out["libigl"] = getattr(igl, "__version__", "unknown")
-    except ImportError:
-        pass
+    out = {"python": platform.python_version()}
+    for dist in ("torch", "numpy", "scipy", "potpourri3d", "libigl", "trimesh", "matplotlib", "hydra-core", "shapecorr"):
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            out[dist] = "not installed"
     return out
 
 

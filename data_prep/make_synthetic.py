@@ -21,6 +21,8 @@ import time
 from dataclasses import fields
 from pathlib import Path
 
+import numpy as np
+
 from shapecorr.data.synthetic import PRESETS, SyntheticConfig, ensure_synthetic_dataset, preset
 from shapecorr.errors import ConfigError, ShapeCorrError
 
@@ -35,6 +37,8 @@ SCRIPT_OPTIONS = {
 #: Shapes shown by ``preview=``: pose index of a few subjects of each class.
 PREVIEW_SHAPES = (("human", 0, 0), ("human", 1, 2), ("human", 2, 5), ("human", 3, 7), ("human", 4, 8),
                   ("quad", 0, 1), ("quad", 1, 3), ("quad", 2, 4))
+#: Rotation from the files' axes (y up) to matplotlib's (z up).
+_PLOT_AXES = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 _TRUE = {"1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
 
@@ -129,7 +133,6 @@ def render_preview(root: Path, png: Path, shapes=PREVIEW_SHAPES, dpi: int = 100)
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     from shapecorr.data.io import read_mesh
@@ -143,6 +146,7 @@ def render_preview(root: Path, png: Path, shapes=PREVIEW_SHAPES, dpi: int = 100)
     for i, name in enumerate(names):
         verts, faces = read_mesh(root / "off" / f"{name}.off")
         colors = _body_point_colors(root, name, len(verts))
+        verts = verts @ _PLOT_AXES.T  # files: y up, z forward -> matplotlib: z up, facing -y
         tri = verts[faces]
         normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         normal /= np.linalg.norm(normal, axis=1, keepdims=True) + 1e-12
@@ -167,8 +171,6 @@ def render_preview(root: Path, png: Path, shapes=PREVIEW_SHAPES, dpi: int = 100)
 
 def _body_point_colors(root: Path, name: str, n_verts: int):
     """Per-vertex RGB from the dense ground truth (template position -> colour), grey without it."""
-    import numpy as np
-
     from shapecorr.data.io import read_mesh
 
     cls = name.split("_")[0]

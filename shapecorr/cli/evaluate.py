@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import os
 import platform
 import shutil
 import sys
@@ -52,8 +53,6 @@ EXAMPLES_DIR = "examples"
 
 def resolve_device(name: str) -> torch.device:
     """``auto`` -> ``cuda:LOCAL_RANK`` when CUDA is available, else ``cpu``; anything else as given."""
-    import os
-
     if name == "auto":
         if torch.cuda.is_available():
             return torch.device(f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}")
@@ -222,9 +221,8 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     }
     if rank == 0:
         _check_run_file(out_dir, fingerprint, bool(cfg.resume))
-        todo_targets = {j for (i, j) in pairs}
-        if todo_targets:
-            shapes.prepare(num_workers=None, geodesics=settings.geodesics, progress=bool(cfg.progress))
+        # Fill the cache of every shape of the split once, in parallel, before any pair is evaluated.
+        shapes.prepare(num_workers=None, geodesics=settings.geodesics, progress=bool(cfg.progress))
     _barrier()
 
     mine = protocol.shard_pairs(pairs, rank, world)

@@ -23,12 +23,18 @@ Training layer (:func:`deep_shells_layer`), for a pair (X, Y) and features at sa
 3. loss = mean of the ``E_k``. Gradients flow through every Sinkhorn and every solve into the features.
 
 Only what the samples need is computed: ``Phi`` rows and shells at the samples, the deformed shell on the
-samples' one-ring (for their normals); ``Y_k`` (feature independent) at full resolution for its norms.
+samples' one-ring (for their normals); ``Y_k`` (feature independent) at full resolution for its norms. All
+feature-independent quantities of every level are prepared before the first Sinkhorn, and each plan enters
+exactly one matrix product (energy of its level and right-hand sides of the next level's solve together), so
+autograd keeps a single ``n_s x m_s`` gradient per plan.
 
 Test time (:func:`deep_shells_query`): feature Sinkhorn and one OT level at ``k_array[0]`` (no gradients),
-then at full resolution a bidirectional nearest-neighbour matching in that level's embedding, followed by the
+then at full resolution a bidirectional nearest-neighbour matching in that level's embedding
+(:func:`product_embedding_maps`, also usable on the last training level as G-MSM does), followed by the
 axiomatic refinement :func:`refine_deep_shells`: 40 log-spaced shell sizes from 6 to 499, each fitting
-``(C, tau)`` by least squares on the current two-sided nearest-neighbour pairs and re-matching.
+``(C, tau)`` by least squares on the current two-sided nearest-neighbour pairs and re-matching (exact
+nearest neighbours, :mod:`shapecorr.matching.nearest_neighbors`). Unlike the original, the OT level's
+second Sinkhorn (whose plan the original computes and discards) is skipped.
 
 Decisions on the points the methods digest marks [BUG?] (``DeepShellsConfig.original()`` restores all of the
 original Python behaviour, and is what the parity test uses):

@@ -161,7 +161,8 @@ def test_same_seed_gives_byte_identical_files_with_any_worker_count(tmp_path, ti
     full = _tree_digest(tiny_root)
     for key in ("off/human_s00_p01.off", "corres/human_s00_p01.vts", "off/quad_s00_p00.off"):
         assert a[key] == full[key]
-    other = _tree_digest(generate_dataset(tmp_path / "c", replace(cfg, seed=1), workers=0, progress=False))
+    one = replace(cfg, seed=1, n_human_poses=1, n_quad_subjects=0)
+    other = _tree_digest(generate_dataset(tmp_path / "c", one, workers=0, progress=False))
     assert other["off/human_s00_p00.off"] != a["off/human_s00_p00.off"]
 
 
@@ -328,9 +329,10 @@ def test_cross_class_references_follow_homologous_body_parts(tiny_templates):
     names_q = np.array(quad.plan.bone_names)[quad.dominant[ref_q]]
     np.testing.assert_array_equal(names_h, names_q)
     assert not any(n.startswith("tail") for n in names_q)
-    # Left stays left: a human left-hand reference maps to the quadruped's left front paw.
+    # Left stays left: a human left-hand reference maps to the quadruped's left front paw (x < 0 in the
+    # generator's axes, where +x is the creature's right).
     left = names_h == "hand_l"
-    assert left.any() and np.all(quad.verts[ref_q[left], 0] > 0)
+    assert left.any() and np.all(human.verts[ref_h[left], 0] < 0) and np.all(quad.verts[ref_q[left], 0] < 0)
 
 
 # ------------------------------------------------------------------------------------- skinning / poses

@@ -120,9 +120,8 @@ def test_maps_dir_mode_reproduces_errors(tiny, tmp_path):
     one_based.mkdir()
     for f in src.glob("*.txt"):
         np.savetxt(one_based / f"{f.stem}.map", np.loadtxt(f, dtype=np.int64) + 1, fmt="%d")
-    third = evaluate(
-        _cfg(tiny, tmp_path / "eval3", f"maps_dir={one_based}", "maps_extension=map", "maps_one_based=true", "n_examples=0")
-    )
+    options = [f"maps_dir={one_based}", "maps_extension=map", "maps_one_based=true", "n_examples=0"]
+    third = evaluate(_cfg(tiny, tmp_path / "eval3", *options))
     assert third["mean_geodesic_error"] == first["mean_geodesic_error"]
 
 

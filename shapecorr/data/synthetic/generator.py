@@ -49,6 +49,9 @@ from shapecorr.errors import DatasetError, InvalidMeshError
 from shapecorr.geometry.remesh import remesh
 from shapecorr.geometry.sampling import farthest_point_sampling
 
+#: Rotation from the generator's axes (x right, y forward, z up; skeleton.py) to the axes of the written
+#: files, those of FAUST: y up, z forward (the way the creature looks), x the creature's left.
+OUTPUT_ROTATION = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
 #: Creature classes in output order, with the integer used in their random streams.
 CLASS_IDS = {"human": 0, "quad": 1}
 #: Random streams (last entry of the seed sequence).
@@ -104,7 +107,7 @@ class SyntheticShape:
     pose_name : str
         Key pose (or ``random_<p>`` / contact pose) it started from.
     verts : (m, 3) float64
-        Vertex positions as written (metres, rounded).
+        Vertex positions as written (metres, rounded; FAUST axes, see :data:`OUTPUT_ROTATION`).
     faces : (g, 3) int64
     template_face : (m,) int64
     template_bary : (m, 3) float64
@@ -112,9 +115,9 @@ class SyntheticShape:
     vts, vts_sym : (R,) int64
         Zero-based vertex of each reference point, and of its mirror image.
     posed_template : (n, 3) float64
-        The class template in this subject and pose (the surface the shape was remeshed from).
+        The class template in this subject and pose (the surface the shape was remeshed from), output axes.
     rest_template : (n, 3) float64
-        The class template in this subject's rest pose.
+        The class template in this subject's rest pose, output axes.
     backoffs : int
         How many times the pose was scaled back towards the rest pose.
     fused : bool
@@ -213,6 +216,12 @@ def generate_shape(
     Returns
     -------
     SyntheticShape
+
+    Raises
+    ------
+    InvalidMeshError
+        The remeshed surface is not a single closed manifold surface (genus 0 unless fused), or bridges body
+        parts even after backing the pose off :data:`MAX_REMESH_ATTEMPTS` times.
     """
     plan = template.plan
     cid = CLASS_IDS[spec.cls]
@@ -220,12 +229,12 @@ def generate_shape(
                                cfg.thickness_std, cfg.build_std)
     id_transforms, heads = identity_transforms(plan, identity)
     rest = blend_skin(template.verts, template.weights, id_transforms)
-    area = float(triangle_areas(rest, template.faces).sum())
-    sqrt_area = np.sqrt(area)
+    sqrt_area = float(np.sqrt(triangle_areas(rest, template.faces).sum()))
 
     rng = _rng(cfg, cid, spec.subject, spec.pose, _STREAM_SHAPE)
     n_target = int(rng.integers(cfg.n_verts_min, cfg.n_verts_max + 1))
     yaw = np.radians(rng.uniform(-cfg.max_yaw_deg, cfg.max_yaw_deg))
+    root_rotation = rotation_about(np.array([0.0, 0.0, 1.0]), yaw)
     fused = bool(rng.random() < cfg.self_contact_fraction)
     if fused:
         pose_name, angles = poses.key_pose(plan, int(rng.integers(1 << 30)), poses.CONTACT_POSES)
@@ -234,20 +243,19 @@ def generate_shape(
         pose_name, angles = poses.pose_base(plan, spec.pose, shared, cfg.random_pose_range)
         angles = poses.jitter(plan, angles, shared, cfg.pose_jitter_deg)
     angles = poses.jitter(plan, angles, rng, cfg.subject_pose_jitter_deg)
-    root_rotation = rotation_about(np.array([0.0, 0.0, 1.0]), yaw)
-    edge = edge_length_for_count(area, n_target)
+
+    edge = edge_length_for_count(sqrt_area**2, n_target)
     margin = max(cfg.contact_margin * sqrt_area, CONTACT_MARGIN_EDGES * edge)
-    adjacency = template.part_adjacency
 
     def pose_fn(a: np.ndarray) -> np.ndarray:
         return blend_skin(rest, template.weights, pose_transforms(plan, heads, a, root_rotation))
 
     def contact_fn(posed: np.ndarray) -> np.ndarray:
-        reach = ADJACENT_CONTACT_REACH * sqrt_area
-        return poses.find_contacts(posed, rest, template.dominant, adjacency, margin, reach)
+        return poses.find_contacts(posed, rest, template.dominant, template.part_adjacency, margin,
+                                   ADJACENT_CONTACT_REACH * sqrt_area)
 
     backoffs = 0
-    for attempt in range(MAX_REMESH_ATTEMPTS):
+    for _ in range(MAX_REMESH_ATTEMPTS):
         if not fused:
             angles, steps = poses.back_off_contacts(angles, pose_fn, contact_fn)
             backoffs += steps
@@ -255,9 +263,10 @@ def generate_shape(
         surface = (posed, template.faces)
         if fused:
             pairs = contact_fn(posed)
-            mid = 0.5 * (posed[pairs[:, 0]] + posed[pairs[:, 1]])
+            contacts = 0.5 * (posed[pairs[:, 0]] + posed[pairs[:, 1]])
             step = max(cfg.grid_step, edge / FUSION_STEPS_PER_EDGE)
-            surface = corruptions.fuse_contacts(posed, template.faces, mid, cfg.contact_merge_radius * sqrt_area, step)
+            surface = corruptions.fuse_contacts(posed, template.faces, contacts, cfg.contact_merge_radius * sqrt_area,
+                                                step)
         verts, faces = remesh(surface[0], surface[1], n_target, iterations=cfg.remesh_iterations,
                               rtol=REMESH_COUNT_RTOL, max_rounds=REMESH_ROUNDS)
         face, bary, _ = trace_to_surface(verts, posed, template.faces)
@@ -270,23 +279,10 @@ def generate_shape(
     else:
         raise InvalidMeshError(f"{spec.name}: the remeshed surface keeps bridging body parts after "
                                f"{MAX_REMESH_ATTEMPTS} attempts")
+    _check_surface(spec.name, verts, faces, fused)
 
-    if not fused:
-        report = topology_report(verts, faces)
-        closed = report["watertight"] and report["vertex_manifold"]
-        if not (closed and report["genus"] == 0 and report["components"] == 1):
-            raise InvalidMeshError(f"{spec.name}: remeshed surface is not a closed manifold genus-0 surface: {report}")
-
-    # Shuffle vertex and face order (and the starting corner of every face) so that no index is shared.
-    perm = rng.permutation(len(verts))
-    inverse = np.empty_like(perm)
-    inverse[perm] = np.arange(len(perm))
+    perm, faces = _shuffle(rng, len(verts), faces)
     verts, face, bary, rest_pos = verts[perm], face[perm], bary[perm], rest_pos[perm]
-    faces = inverse[faces]
-    shift = rng.integers(0, 3, size=len(faces))
-    faces = np.take_along_axis(faces, (np.arange(3)[None, :] + shift[:, None]) % 3, axis=1)
-    faces = faces[rng.permutation(len(faces))]
-
     vts = nearest_vertices(rest[ref], rest_pos)
     vts_sym = nearest_vertices(rest[ref_sym], rest_pos)
 
@@ -297,9 +293,37 @@ def generate_shape(
         verts, face, bary = verts[keep], face[keep], bary[keep]
     if cfg.noise_std > 0:
         verts = corruptions.add_noise(verts, rng, cfg.noise_std * sqrt_area)
+    verts, posed, rest = (x @ OUTPUT_ROTATION.T for x in (verts, posed, rest))
     verts = np.round(verts, cfg.output_decimals)
-    return SyntheticShape(spec, pose_name, verts, faces.astype(np.int64), face, bary, vts, vts_sym, posed, rest,
-                          backoffs, fused)
+    return SyntheticShape(spec, pose_name, verts, faces, face, bary, vts, vts_sym, posed, rest, backoffs, fused)
+
+
+def _check_surface(name: str, verts: np.ndarray, faces: np.ndarray, fused: bool) -> None:
+    """Every shape is one closed manifold surface; genus 0 unless fused (fusion may add handles)."""
+    report = topology_report(verts, faces)
+    closed = report["watertight"] and report["vertex_manifold"] and report["components"] == 1
+    if not (closed and (fused or report["genus"] == 0)):
+        kind = "" if fused else "genus-0 "
+        raise InvalidMeshError(f"{name}: remeshed surface is not a single closed manifold {kind}surface: {report}")
+
+
+def _shuffle(rng: np.random.Generator, n_verts: int, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Random vertex order, face order and first corner of every face (orientation kept).
+
+    Returns
+    -------
+    perm : (n,) int64
+        New vertex i is old vertex ``perm[i]``.
+    faces : (f, 3) int64
+        The faces in the new vertex indices.
+    """
+    perm = rng.permutation(n_verts)
+    inverse = np.empty_like(perm)
+    inverse[perm] = np.arange(n_verts)
+    f = inverse[np.asarray(faces, np.int64)]
+    shift = rng.integers(0, 3, size=len(f))
+    f = np.take_along_axis(f, (np.arange(3)[None, :] + shift[:, None]) % 3, axis=1)
+    return perm.astype(np.int64), f[rng.permutation(len(f))].astype(np.int64)
 
 
 def _bridging_edges(faces: np.ndarray, rest_pos: np.ndarray, max_length: float) -> int:
@@ -326,7 +350,7 @@ def _write_shape(root: Path, shape: SyntheticShape, write_dense: bool) -> None:
 
 def _write_templates(root: Path, templates: dict[str, Template], refs: dict, decimals: int) -> None:
     for c, t in templates.items():
-        write_mesh(root / "templates" / f"{c}.off", np.round(t.verts, decimals), t.faces)
+        write_mesh(root / "templates" / f"{c}.off", np.round(t.verts @ OUTPUT_ROTATION.T, decimals), t.faces)
         write_vts(root / "templates" / f"{c}.vts", refs[c][0])
         write_vts(root / "templates" / f"{c}.sym.vts", refs[c][1])
 
@@ -458,7 +482,7 @@ Content
   self_contact_fraction={cfg.self_contact_fraction}.
 
 Layout (FAUST_r / SCAPE_r style)
-  off/<name>.off           the meshes (metres; names <class>_sXX_pYY: subject XX, pose YY)
+  off/<name>.off           the meshes (metres, y up, z forward; names <class>_sXX_pYY: subject XX, pose YY)
   corres/<name>.vts        {cfg.n_ref_points} one-based vertex indices; line r is the same body point on
                            every shape (template vertex ref[r] -> nearest vertex in the subject's rest pose)
   corres/<name>.sym.vts    the same for the left/right mirrored body point (symmetric ground truth)

@@ -2,7 +2,9 @@
 primitives (round cones, ellipsoids) whose smooth union is the creature's surface.
 
 Coordinates are in metres of the rest pose. Axes: ``+z`` up, ``+y`` forward (the way the creature looks),
-``+x`` the creature's left; every body plan is mirror-symmetric about the plane ``x = 0``.
+``+x`` the creature's right (right-handed); every body plan is mirror-symmetric about the plane ``x = 0``.
+The tables below describe the right-side bones (``_r``, at ``x > 0``); their left mirror images (``_l``) are
+generated. (Files are written in the FAUST convention instead: ``y`` up, ``z`` forward, see ``generator.py``.)
 
 Each bone carries a right-handed *bone frame* ``F = [lat, ref, axis]`` (columns): ``axis`` runs from the
 bone's head (its joint) to its tail, ``ref`` is a semantic reference direction orthogonal to it (anterior for
@@ -13,7 +15,7 @@ semantic cross-class correspondence through bone-local coordinates (see ``ground
 
 Joint rotations are three angles in degrees, applied in the bone frame as
 ``R_local = R_lat(-flex) @ R_ref(side * abd) @ R_axis(side * twist)``: ``flex`` turns the bone towards ``ref``,
-``abd`` towards ``lat``, ``twist`` about its own axis, and ``side`` (+1 left, -1 right, 0/+1 centre) makes
+``abd`` towards ``lat``, ``twist`` about its own axis, and ``side`` (+1 right, -1 left, +1 centre) makes
 equal angles on the left and right bones produce mirror-image poses.
 """
 
@@ -46,7 +48,7 @@ class Bone:
     limits
         ``((flex_lo, flex_hi), (abd_lo, abd_hi), (twist_lo, twist_hi))`` joint limits in degrees.
     side
-        +1 left, -1 right, 0 on the symmetry plane.
+        +1 right (as described in the tables), -1 left (mirror image), 0 on the symmetry plane.
     """
 
     name: str
@@ -137,7 +139,7 @@ class BodyPlan:
 
     @property
     def sides(self) -> np.ndarray:
-        """``(B,)`` float64: -1 for right bones, +1 otherwise (the sign applied to abd and twist)."""
+        """``(B,)`` float64: -1 for left bones, +1 otherwise (the sign applied to abd and twist)."""
         return np.array([-1.0 if b.side < 0 else 1.0 for b in self.bones])
 
     @property
@@ -194,29 +196,29 @@ def _mirror(p: tuple[float, float, float]) -> tuple[float, float, float]:
 def _sided_bones(specs) -> list[Bone]:
     """Expand ``(name, parent, head, tail, ref, limits, sided)`` rows into bones, mirroring sided rows.
 
-    A sided row describes the left bone; its parent, if also sided, is the left parent. The right copy has
-    mirrored positions and reference direction, and the same anatomical limits.
+    A sided row describes the right bone (``x > 0``); its parent, if also sided, is the right parent. The
+    left copy has mirrored positions and reference direction, and the same anatomical limits.
     """
     sided = {s[0] for s in specs if s[6]}
-    left, right, centre = [], [], []
+    right, left, centre = [], [], []
     for name, parent, head, tail, ref, limits, is_sided in specs:
         if not is_sided:
             centre.append(Bone(name, parent, head, tail, ref, limits, side=0))
             continue
-        par_l = f"{parent}_l" if parent in sided else parent
         par_r = f"{parent}_r" if parent in sided else parent
-        left.append(Bone(f"{name}_l", par_l, head, tail, ref, limits, side=1))
-        right.append(Bone(f"{name}_r", par_r, _mirror(head), _mirror(tail), _mirror(ref), limits, side=-1))
-    return centre + left + right
+        par_l = f"{parent}_l" if parent in sided else parent
+        right.append(Bone(f"{name}_r", par_r, head, tail, ref, limits, side=1))
+        left.append(Bone(f"{name}_l", par_l, _mirror(head), _mirror(tail), _mirror(ref), limits, side=-1))
+    return centre + right + left
 
 
 def _sided_primitives(specs, sided_bones: set[str]) -> list[Primitive]:
-    """Expand primitives of left bones into left + mirrored right copies."""
+    """Expand primitives of right bones into right + mirrored left copies."""
     out = []
     for prim in specs:
         if prim.bone in sided_bones:
-            out.append(Primitive(f"{prim.bone}_l", prim.kind, prim.a, prim.b, prim.ra, prim.rb, prim.radii))
-            out.append(Primitive(f"{prim.bone}_r", prim.kind, _mirror(prim.a), _mirror(prim.b), prim.ra, prim.rb,
+            out.append(Primitive(f"{prim.bone}_r", prim.kind, prim.a, prim.b, prim.ra, prim.rb, prim.radii))
+            out.append(Primitive(f"{prim.bone}_l", prim.kind, _mirror(prim.a), _mirror(prim.b), prim.ra, prim.rb,
                                  prim.radii))
         else:
             out.append(prim)
