@@ -39,6 +39,8 @@ PREVIEW_SHAPES = (("human", 0, 0), ("human", 1, 2), ("human", 2, 5), ("human", 3
                   ("quad", 0, 1), ("quad", 1, 3), ("quad", 2, 4))
 #: Rotation from the files' axes (y up) to matplotlib's (z up).
 _PLOT_AXES = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+#: Camera azimuth (degrees) of the preview per class: humans from the front-left, quadrupeds from the side.
+PREVIEW_AZIMUTH = {"human": -65.0, "quad": -20.0}
 _TRUE = {"1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
 
@@ -157,7 +159,7 @@ def render_preview(root: Path, png: Path, shapes=PREVIEW_SHAPES, dpi: int = 100)
         centre, radius = (verts.max(0) + verts.min(0)) / 2, (verts.max(0) - verts.min(0)).max() / 2
         for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre):
             setter(c - radius, c + radius)
-        ax.view_init(elev=12, azim=-65)
+        ax.view_init(elev=12, azim=PREVIEW_AZIMUTH["quad" if name.startswith("quad") else "human"])
         ax.set_box_aspect((1, 1, 1), zoom=1.35)
         ax.set_axis_off()
         ax.set_title(f"{name}\n{len(verts)} vertices", fontsize=7, y=0.95)

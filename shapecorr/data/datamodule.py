@@ -13,7 +13,7 @@ from typing import Any, Mapping
 
 import pytorch_lightning as pl
 import torch
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, Sampler
 
 from shapecorr.data.datasets import PairDataset, PairSample, ShapeDataset
 from shapecorr.data.operators import OperatorConfig
@@ -51,6 +51,54 @@ def _dataclass_from(cls, value):
     if unknown:
         raise ConfigError(f"unknown {cls.__name__} option(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
     return cls(**value)
+
+
+class ResumableShuffleSampler(Sampler[int]):
+    """Shuffled indices whose order depends only on ``(seed, epoch)``, able to start mid-epoch.
+
+    Lightning calls :meth:`set_epoch` before each epoch; :meth:`resume_at` makes the next iteration skip the
+    first ``skip`` indices of an epoch's permutation, so a run resumed from a mid-epoch checkpoint sees exactly
+    the pairs the uninterrupted run would have seen next. ``len`` stays the full epoch length.
+    """
+
+    def __init__(self, n: int, seed: int = 0):
+        self.n = int(n)
+        self.seed = int(seed)
+        self.epoch = 0
+        self._skip = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def resume_at(self, epoch: int, skip: int) -> None:
+        """Next iteration: epoch ``epoch``, starting after its first ``skip`` indices."""
+        self.epoch, self._skip = int(epoch), max(0, int(skip))
+
+    def permutation(self, epoch: int) -> list[int]:
+        """The full index order of an epoch."""
+        generator = torch.Generator().manual_seed(self.seed * 1_000_003 + int(epoch))
+        return torch.randperm(self.n, generator=generator).tolist()
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __iter__(self):
+        skip, self._skip = self._skip, 0
+        return iter(self.permutation(self.epoch)[skip:])
+
+
+def _resume_position(trainer) -> tuple[int, int]:
+    """(epoch, batches already trained in it) of a trainer restored from a checkpoint ((0, 0) when fresh).
+
+    Mid-epoch (``epoch_progress`` started but not processed) the epoch loop's ``batch_progress.processed``
+    counts the batches whose optimization finished before the checkpoint was written.
+    """
+    if trainer is None:
+        return 0, 0
+    epochs = trainer.fit_loop.epoch_progress.current
+    if epochs.started > epochs.processed:
+        return epochs.processed, trainer.fit_loop.epoch_loop.batch_progress.current.processed
+    return epochs.processed, 0
 
 
 class ShapePairDataModule(pl.LightningDataModule):
@@ -176,12 +224,15 @@ class ShapePairDataModule(pl.LightningDataModule):
             self.pairs(split)
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
-        generator = torch.Generator().manual_seed(self.shuffle_seed) if shuffle else None
+        sampler = None
+        if shuffle:
+            # (seed, epoch)-determined order that can restart mid-epoch: resumed runs see the same pairs
+            sampler = ResumableShuffleSampler(len(self.pairs(split)), self.shuffle_seed)
+            sampler.resume_at(*_resume_position(self.trainer))
         return DataLoader(
             self.pairs(split),
             batch_size=1,
-            shuffle=shuffle,
-            generator=generator,
+            sampler=sampler,
             num_workers=self.num_workers,
             collate_fn=_first_item,
             persistent_workers=self.num_workers > 0,

@@ -475,6 +475,8 @@ def test_config_fingerprint_and_presets():
         SyntheticConfig.from_dict({"sed": 1})
     with pytest.raises(ConfigError):
         preset("huge")
+    with pytest.raises(ConfigError, match="n_verts_min"):
+        preset("tiny", n_vert_min=10)  # typo: the message lists the valid names
 
 
 def test_ensure_generates_once_replaces_stale_and_refuses_foreign(tmp_path, monkeypatch):

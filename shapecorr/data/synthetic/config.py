@@ -14,7 +14,7 @@ from shapecorr.errors import ConfigError
 
 #: Bumped whenever the generator's output for a given configuration changes; part of the fingerprint,
 #: so cached datasets made by an older generator are regenerated.
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 
 #: Split rules (see :class:`SyntheticConfig`).
 SPLIT_RULES = ("subject", "pose")
@@ -34,7 +34,7 @@ class SyntheticConfig:
         Quadruped subjects and poses per subject (inter-class pairs); 0 subjects disables the class.
     n_verts_min, n_verts_max
         Every shape is remeshed independently to a vertex count drawn uniformly from this range (the
-        remesher reaches it within a few percent).
+        remesher reaches the drawn count within ~8%).
     n_ref_points
         R, the number of reference points in every ``corres/<name>.vts`` (FAUST_r has 5000).
     template_verts
@@ -165,7 +165,7 @@ PRESETS: dict[str, dict] = {
     "default": {},
     # A few ~300-vertex shapes for unit and integration tests (seconds to generate).
     "tiny": dict(n_human_subjects=2, n_human_poses=3, n_quad_subjects=2, n_quad_poses=2, n_verts_min=250,
-                 n_verts_max=350, n_ref_points=200, template_verts=1200),
+                 n_verts_max=350, n_ref_points=100, template_verts=1200),
     # FAUST_r-like resolution (~5k vertices per shape, 10 x 10 humans).
     "large": dict(n_human_subjects=10, n_human_poses=10, n_verts_min=4500, n_verts_max=5500, n_ref_points=3000,
                   template_verts=8000),
@@ -173,7 +173,17 @@ PRESETS: dict[str, dict] = {
 
 
 def preset(name: str = "default", **overrides) -> SyntheticConfig:
-    """A preset configuration with optional overrides, e.g. ``preset("tiny", seed=3)``."""
+    """A preset configuration with optional overrides, e.g. ``preset("tiny", seed=3)``.
+
+    Raises
+    ------
+    ConfigError
+        Unknown preset, unknown option name (the message lists the valid ones), or an invalid value.
+    """
     if name not in PRESETS:
         raise ConfigError(f"unknown synthetic preset {name!r}; choose one of {sorted(PRESETS)}")
+    known = {f.name for f in fields(SyntheticConfig)}
+    unknown = sorted(set(overrides) - known)
+    if unknown:
+        raise ConfigError(f"unknown synthetic dataset option(s) {unknown}; known: {sorted(known)}")
     return replace(SyntheticConfig(), **{**PRESETS[name], **overrides})

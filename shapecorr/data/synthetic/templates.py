@@ -265,8 +265,10 @@ def build_template(
     verts, faces = remesh(verts, faces, n_verts, iterations=remesh_iterations, rtol=TEMPLATE_COUNT_RTOL)
     _check_sphere(plan.name, verts, faces, "after remeshing")
     weights, dominant = skinning_weights(plan, verts, faces, blend=skin_blend)
-    adjacency = part_adjacency(faces, dominant, len(plan.bones))
-    return Template(plan, verts, faces, weights, dominant, mirror_map(verts), adjacency)
+    arrays = (verts, faces, weights, dominant, mirror_map(verts), part_adjacency(faces, dominant, len(plan.bones)))
+    for array in arrays:
+        array.setflags(write=False)  # templates are shared (cached); nobody may modify them in place
+    return Template(plan, *arrays)
 
 
 def part_adjacency(faces: np.ndarray, part: np.ndarray, n_parts: int) -> np.ndarray:

@@ -1,0 +1,100 @@
+"""``train.py``: train a learned correspondence model, then score it on the test split.
+
+    python train.py                                   # Deep Shells on the embedded synthetic data (minutes, CPU)
+    python train.py experiment=deep_shells_faust_r data.root=/path/to/FAUST_r trainer=gpu
+    python train.py ckpt_path=outputs/train/<run>/checkpoints/last.ckpt   # resume (same data order and samples)
+
+Options: ``configs/train.yaml``. Steps: seed everything; build the data module and the model
+(``hydra.utils.instantiate``); add the model's ``required_operators`` to the data; fit with checkpoints
+(``<run>/checkpoints``: ``last.ckpt`` plus one every ``checkpoint.every_n_epochs`` epochs) and the logger of the
+``logger`` group under the Hydra run directory; with ``test=true`` run the test split on the final weights and
+print ``test geodesic error: <mean> (fraction of sqrt(area)) over <N> pairs`` as the last line.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import pytorch_lightning as pl
+from omegaconf import DictConfig
+from omegaconf.errors import OmegaConfBaseException
+from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
+
+from shapecorr.cli.common import exit_on_user_error, user_config_error
+from shapecorr.errors import ConfigError
+
+CHECKPOINT_DIR = "checkpoints"
+
+
+def _instantiate(node: DictConfig, what: str, **kwargs) -> Any:
+    try:
+        return hydra.utils.instantiate(node, _convert_="object", **kwargs)
+    except hydra.errors.InstantiationException as err:
+        cause = err.__cause__
+        from shapecorr.errors import ShapeCorrError
+
+        if isinstance(cause, ShapeCorrError):
+            raise cause from None
+        raise ConfigError(f"cannot build the {what}: {err}") from None
+
+
+def build_callbacks(cfg: DictConfig, out_dir: Path) -> list[pl.Callback]:
+    """ModelCheckpoint (last + periodic) and, with a logger, the learning-rate monitor."""
+    ck = cfg.checkpoint
+    callbacks: list[pl.Callback] = [
+        ModelCheckpoint(
+            dirpath=str(out_dir / CHECKPOINT_DIR),
+            filename="epoch{epoch:03d}-step{step:06d}",
+            auto_insert_metric_name=False,
+            save_last=bool(ck.save_last),
+            save_top_k=-1,  # keep every periodic checkpoint
+            every_n_epochs=ck.every_n_epochs,
+            every_n_train_steps=ck.every_n_train_steps,
+        )
+    ]
+    if cfg.get("logger"):
+        callbacks.append(LearningRateMonitor(logging_interval="step"))
+    return callbacks
+
+
+@exit_on_user_error
+def train(cfg: DictConfig) -> dict[str, Any]:
+    """Run the training described by ``cfg`` (configs/train.yaml).
+
+    Returns
+    -------
+    dict
+        ``checkpoint`` (path of the last checkpoint, or None), ``test_error`` (mean over reference points and
+        pairs, or None without ``test``), ``test_pairs``, ``output_dir``.
+    """
+    try:
+        out_dir = Path(str(cfg.paths.output_dir))
+        pl.seed_everything(int(cfg.seed), workers=True)
+        ckpt_path = cfg.get("ckpt_path")
+        if ckpt_path and not Path(str(ckpt_path)).is_file():
+            raise ConfigError("checkpoint to resume from does not exist", str(ckpt_path))
+        dm = _instantiate(cfg.data, "data module")
+        model = _instantiate(cfg.model, "model")
+        logger = _instantiate(cfg.logger, "logger") if cfg.get("logger") else False
+        trainer = _instantiate(cfg.trainer, "trainer", callbacks=build_callbacks(cfg, out_dir), logger=logger)
+    except OmegaConfBaseException as err:
+        raise user_config_error(err) from err
+    required = dict(getattr(model, "required_operators", {}) or {})
+    if required:
+        dm.with_operators(**required)
+    trainer.fit(model, datamodule=dm, ckpt_path=str(ckpt_path) if ckpt_path else None)
+    checkpoint = trainer.checkpoint_callback.last_model_path if trainer.checkpoint_callback else None
+    result: dict[str, Any] = {"checkpoint": checkpoint or None, "test_error": None, "test_pairs": 0,
+                              "output_dir": str(out_dir)}
+    if cfg.test:
+        trainer.test(model, datamodule=dm, verbose=False)
+        errors = getattr(model, "_eval_errors", {}).get("test", [])
+        if trainer.is_global_zero and errors:
+            mean = float(np.mean(np.concatenate(errors)))
+            result.update(test_error=mean, test_pairs=len(errors))
+            print(f"test geodesic error: {mean:.4f} (fraction of sqrt(area)) over {len(errors)} pairs", flush=True)
+    return result
+

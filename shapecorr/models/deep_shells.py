@@ -1,0 +1,247 @@
+"""Deep Shells as a LightningModule: spectral filter bank on SHOT -> hierarchical OT layer -> mean level energy.
+
+Eisenberger, Toker, Leal-Taixé, Cremers, NeurIPS 2020 (methods-digest §2). The module is thin: the learned
+features come from :class:`~shapecorr.nn.spectral_conv.SpectralFilterBank` (or, for the "no learning"
+ablation ``backbone="identity"``, the raw descriptor), the matching and the loss from
+:func:`~shapecorr.matching.deep_shells.deep_shells_layer`, test-time maps from
+:func:`~shapecorr.matching.deep_shells.deep_shells_query`.
+
+Training step, for one pair: ``num_samples`` vertices per shape drawn uniformly with replacement (published:
+2000), features evaluated at those rows only, the OT layer over the shell schedule ``layer.k_array``, loss =
+(weighted) mean of the level energies. The sample generator is seeded from ``(seed, epoch, batch index)``, so a
+run resumed from a checkpoint draws exactly the samples the uninterrupted run would have drawn (the global
+step is not used: with gradient accumulation many batches share one).
+
+``match``: features at full resolution, the coarse OT level and the axiomatic refinement (``layer.refine_*``,
+published 40 levels from 6 to 499). During training, validation uses a cheaper refinement with
+``val_refine_levels`` log-spaced levels over the same range (``None``: the full schedule; ``0``: no refinement),
+so that a validation pass costs seconds rather than minutes; ``evaluate.py`` and ``trainer.test`` always use the
+full schedule (``refine=False`` disables it everywhere).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import torch
+
+from shapecorr.errors import ConfigError, NumericalError
+from shapecorr.matching.deep_shells import (
+    DeepShellsConfig,
+    deep_shells_layer,
+    deep_shells_query,
+    make_spectral_shape,
+    random_samples,
+    shell_size,
+)
+from shapecorr.matching.result import MatchResult
+from shapecorr.models.base import CorrespondenceModule
+from shapecorr.nn.spectral_conv import (
+    DEFAULT_IN_CHANNELS,
+    DEFAULT_MAX_FREQUENCY,
+    DEFAULT_NUM_BASIS,
+    DEFAULT_NUM_EIGS,
+    DEFAULT_OUT_CHANNELS,
+    SpectralFilterBank,
+)
+
+#: Deep Shells optimizer: Adam with learning rate 1e-4 (methods-digest §2.3, train.py of the original).
+DEFAULT_LR = 1e-4
+#: Input descriptor of the published network (SHOT, 352 channels).
+DEFAULT_DESCRIPTOR = "shot"
+BACKBONES = ("spectral", "identity")
+
+
+def _as_config(layer: Mapping[str, Any] | DeepShellsConfig | None, num_samples: int) -> DeepShellsConfig:
+    if isinstance(layer, DeepShellsConfig):
+        return replace(layer, num_samples=int(num_samples))
+    values = dict(layer or {})
+    if "k_array" in values:
+        values["k_array"] = tuple(int(k) for k in values["k_array"])
+    try:
+        return DeepShellsConfig(**{**values, "num_samples": int(num_samples)})
+    except TypeError as err:
+        raise ConfigError(f"deep_shells: invalid layer option: {err}") from None
+
+
+class DeepShells(CorrespondenceModule):
+    """Deep Shells: learned spectral features + differentiable smooth-shells OT (see the module docstring).
+
+    Parameters
+    ----------
+    backbone : {"spectral", "identity"}
+        ``spectral``: the published single-layer :class:`SpectralFilterBank`; ``identity``: the descriptor
+        goes straight into the OT layer (no parameters: the "no learning" ablation, evaluable without training).
+    descriptor : str
+        Per-vertex input descriptor from the data pipeline (published: ``shot``).
+    in_channels, out_channels, hidden_channels, num_basis, num_eigs, max_frequency, activation
+        :class:`SpectralFilterBank` options (published: 352 -> 120, 16 cosines, 200 eigenpairs, no hidden layer).
+    num_samples : int
+        Vertices drawn per shape and training step (published 2000, with replacement).
+    lr : float
+        Adam learning rate (published 1e-4).
+    layer : mapping
+        :class:`~shapecorr.matching.deep_shells.DeepShellsConfig` fields (shell schedule, Sinkhorn, refinement).
+    level_weights : sequence of float, optional
+        Weights of the level energies in the loss (normalized to sum 1); ``None`` = plain mean (published).
+    refine : bool
+        Run the axiomatic refinement in ``match`` (published: yes).
+    val_refine_levels : int, optional
+        Refinement levels during validation while fitting (cheap mode); ``None`` = the full schedule.
+    seed : int
+        Base seed of the per-step vertex sampling.
+    """
+
+    def __init__(
+        self,
+        backbone: str = "spectral",
+        descriptor: str = DEFAULT_DESCRIPTOR,
+        in_channels: int = DEFAULT_IN_CHANNELS,
+        out_channels: int = DEFAULT_OUT_CHANNELS,
+        hidden_channels: Sequence[int] = (),
+        num_basis: int = DEFAULT_NUM_BASIS,
+        num_eigs: int = DEFAULT_NUM_EIGS,
+        max_frequency: float = DEFAULT_MAX_FREQUENCY,
+        activation: str = "relu",
+        num_samples: int = DeepShellsConfig.num_samples,
+        lr: float = DEFAULT_LR,
+        layer: Mapping[str, Any] | None = None,
+        level_weights: Sequence[float] | None = None,
+        refine: bool = True,
+        val_refine_levels: int | None = None,
+        seed: int = 0,
+    ):
+        super().__init__()
+        self.save_hyperparameters()
+        if backbone not in BACKBONES:
+            raise ConfigError(f"deep_shells: backbone must be one of {BACKBONES}, got {backbone!r}")
+        if not lr > 0:
+            raise ConfigError(f"deep_shells: lr must be positive, got {lr}")
+        if val_refine_levels is not None and int(val_refine_levels) < 0:
+            raise ConfigError(f"deep_shells: val_refine_levels must be >= 0 or null, got {val_refine_levels}")
+        self.backbone_name = backbone
+        self.descriptor = str(descriptor)
+        self.lr = float(lr)
+        self.refine = bool(refine)
+        self.val_refine_levels = None if val_refine_levels is None else int(val_refine_levels)
+        self.seed = int(seed)
+        self.config = _as_config(layer, num_samples)
+        self.backbone = None
+        if backbone == "spectral":
+            self.backbone = SpectralFilterBank(in_channels, out_channels, tuple(hidden_channels), num_basis,
+                                               num_eigs, max_frequency, activation)
+        n_levels = len(self.config.k_array)
+        if level_weights is None:
+            weights = torch.full((n_levels,), 1.0 / n_levels)
+        else:
+            weights = torch.as_tensor([float(w) for w in level_weights])
+            if weights.shape != (n_levels,) or (weights < 0).any() or not weights.sum() > 0:
+                raise ConfigError(f"deep_shells: level_weights must be {n_levels} non-negative numbers (one per "
+                                  f"k in layer.k_array) with a positive sum, got {list(level_weights)}")
+            weights = weights / weights.sum()
+        self.register_buffer("level_weights", weights, persistent=False)
+        self._validating_during_fit = False
+
+    # -- data requirements ------------------------------------------------------------------------------------
+    @property
+    def required_operators(self) -> dict:  # type: ignore[override]
+        """Descriptor and eigenpairs the data must provide: the filter bank's ``num_eigs`` and the shells'."""
+        cfg = self.config
+        ks = list(cfg.k_array) + (list(cfg.refine_k_array) if self.refine else [])
+        need = max(max(shell_size(k, cfg.smooth_x, cfg.sigmoid_inclusive),
+                       shell_size(k, "sigmoid", cfg.sigmoid_inclusive)) for k in ks)
+        if self.backbone is not None:
+            need = max(need, self.backbone.num_eigs)
+        return {"descriptors": [self.descriptor], "n_eig": int(need)}
+
+    # -- building blocks --------------------------------------------------------------------------------------
+    def features(self, sample, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """Per-vertex features of a :class:`~shapecorr.data.datasets.ShapeSample`.
+
+        Returns
+        -------
+        (n, c) or (len(rows), c) float
+        """
+        if self.descriptor not in sample.features:
+            raise ConfigError(f"{sample.name}: deep_shells needs the {self.descriptor!r} descriptor, the data "
+                              f"provides {sorted(sample.features)}; add it to data.operators.descriptors")
+        desc = sample.features[self.descriptor]
+        if self.backbone is None:
+            return desc if rows is None else desc[rows]
+        return self.backbone(desc, sample.evecs, sample.evals, sample.mass, rows=rows)
+
+    @staticmethod
+    def spectral_shape(sample):
+        """:class:`~shapecorr.matching.deep_shells.SpectralShape` of a ShapeSample (coordinates' coefficients)."""
+        return make_spectral_shape(sample.verts, sample.faces, sample.evecs, sample.mass, name=sample.name)
+
+    def sample_generator(self, batch_idx: int) -> torch.Generator:
+        """CPU generator for the vertex samples of one training step, seeded by (seed, epoch, batch index)."""
+        state = np.random.SeedSequence([self.seed, int(self.current_epoch), int(batch_idx)]).generate_state(1)
+        return torch.Generator().manual_seed(int(state[0]))
+
+    # -- training ---------------------------------------------------------------------------------------------
+    def training_step(self, batch, batch_idx: int) -> torch.Tensor:
+        x, y = batch.x, batch.y
+        gen = self.sample_generator(batch_idx)
+        num = self.config.num_samples
+        samples_x = random_samples(x.shape.n_verts, num, generator=gen).to(x.verts.device)
+        samples_y = random_samples(y.shape.n_verts, num, generator=gen).to(y.verts.device)
+        out = deep_shells_layer(self.features(x, samples_x), self.features(y, samples_y), self.spectral_shape(x),
+                                self.spectral_shape(y), samples_x, samples_y, self.config)
+        energies = out.level_energies
+        loss = (self.level_weights.to(energies) * energies).sum()
+        if not torch.isfinite(loss):
+            raise NumericalError(f"deep_shells: training loss is {loss.item()} on pair {batch.name} "
+                                 f"(level energies {energies.detach().cpu().tolist()})")
+        log = dict(batch_size=1, on_step=True, on_epoch=True)
+        self.log("train/loss", loss, prog_bar=True, **log)
+        for k, e in zip(self.config.k_array, energies):
+            self.log(f"train/energy_k{k}", e, **log)
+        return loss
+
+    def configure_optimizers(self):
+        if self.backbone is None:
+            return None  # the identity ablation has nothing to learn
+        return torch.optim.Adam(self.parameters(), lr=self.lr)
+
+    def validation_step(self, batch, batch_idx: int):
+        self._validating_during_fit = self._trainer is not None and self._trainer.state.fn == "fit"
+        try:
+            return super().validation_step(batch, batch_idx)
+        finally:
+            self._validating_during_fit = False
+
+    # -- matching ---------------------------------------------------------------------------------------------
+    def match_config(self) -> tuple[DeepShellsConfig, bool]:
+        """The layer config and refine flag ``match`` uses now (cheap refinement in validation while fitting)."""
+        if not self.refine:
+            return self.config, False
+        if self._validating_during_fit and self.val_refine_levels is not None:
+            if self.val_refine_levels == 0:
+                return self.config, False
+            return replace(self.config, refine_levels=self.val_refine_levels), True
+        return self.config, True
+
+    def match(self, x, y) -> MatchResult:
+        """Point-to-point map x -> y (and y -> x) by the Deep Shells test-time pipeline.
+
+        Parameters
+        ----------
+        x, y : ShapeSample
+            With ``evals``, ``evecs``, ``mass`` and the descriptor (see :attr:`required_operators`).
+
+        Returns
+        -------
+        MatchResult
+            ``p2p (n_x,)`` int64, ``p2p_inv (n_y,)`` int64.
+        """
+        config, refine = self.match_config()
+        with torch.no_grad():
+            fx, fy = self.features(x), self.features(y)
+            if not (torch.isfinite(fx).all() and torch.isfinite(fy).all()):
+                raise NumericalError(f"deep_shells: the features of {x.name} or {y.name} contain NaN or Inf")
+            result = deep_shells_query(fx, fy, self.spectral_shape(x), self.spectral_shape(y), config, refine=refine)
+        return MatchResult(p2p=result.map_x_to_y, p2p_inv=result.map_y_to_x)

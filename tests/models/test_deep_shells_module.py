@@ -1,0 +1,192 @@
+"""DeepShells LightningModule: training step, match, hyperparameters, configs.
+
+The pair is built in memory: an icosphere (642 vertices) and a smoothly bent, vertex-permuted copy of it with
+the eigenbasis of each; the "descriptor" is a smooth random signal (fixed per base vertex, so X and Y agree
+at corresponding points) standing in for SHOT, which keeps the tests independent of the descriptor code.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+
+from shapecorr.data.datasets import PairSample, ShapeSample
+from shapecorr.data.shape import make_shape
+from shapecorr.errors import ConfigError, NumericalError
+from shapecorr.geometry.laplacian import eigenbasis
+from shapecorr.models.deep_shells import DeepShells
+
+REPO = Path(__file__).resolve().parents[2]
+N_EIG = 40
+N_CHANNELS = 16
+# small but complete settings: 3 training levels, short refinement within N_EIG eigenpairs
+SMALL = dict(in_channels=N_CHANNELS, out_channels=8, num_eigs=30, num_samples=150, refine=True,
+             layer=dict(k_array=[6, 8, 10], refine_k_min=6, refine_k_max=25, refine_levels=4))
+
+pytestmark = pytest.mark.filterwarnings("ignore:You are trying to `self.log\\(\\)`")
+
+
+def _sample(verts, faces, feats, name) -> ShapeSample:
+    shape = make_shape(verts, faces, name)
+    evals, evecs, mass = eigenbasis(shape.verts.numpy(), shape.faces.numpy(), N_EIG)
+    return ShapeSample(shape=shape, evals=torch.as_tensor(evals, dtype=torch.float32),
+                       evecs=torch.as_tensor(evecs, dtype=torch.float32),
+                       mass=torch.as_tensor(mass, dtype=torch.float32), features={"shot": torch.as_tensor(feats)})
+
+
+@pytest.fixture(scope="module")
+def pair():
+    """(PairSample, perm): y's vertex perm[i] is x's vertex i."""
+    rng = np.random.default_rng(0)
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    base, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    feats = (np.stack([np.sin((k + 1) * base @ rng.normal(size=3)) for k in range(N_CHANNELS)], 1)
+             .astype(np.float32))
+    x = _sample(base, faces, feats, "x")
+    perm = rng.permutation(len(base))
+    bent = base * [1.3, 1.0, 0.8]
+    bent[:, 2] += 0.2 * np.sin(1.5 * bent[:, 1])
+    verts_y, feats_y = np.empty_like(bent), np.empty_like(feats)
+    verts_y[perm], feats_y[perm] = bent, feats
+    y = _sample(verts_y, perm[faces], feats_y, "y")
+    return PairSample(x, y), perm
+
+
+def test_training_step_finite_loss_and_gradients(pair):
+    batch, _ = pair
+    torch.manual_seed(0)
+    model = DeepShells(**SMALL)
+    loss = model.training_step(batch, 0)
+    assert loss.dim() == 0 and torch.isfinite(loss) and loss > 0
+    loss.backward()
+    for name, p in model.named_parameters():
+        assert p.grad is not None, name
+        assert torch.isfinite(p.grad).all(), name
+        assert p.grad.abs().sum() > 0, name
+
+
+def test_level_weights_select_levels(pair):
+    batch, _ = pair
+    uniform = DeepShells(**SMALL)
+    last = DeepShells(**SMALL, level_weights=[0.0, 0.0, 2.0])
+    last.load_state_dict(uniform.state_dict())
+    # same samples (same seed, epoch, batch index): the one-hot loss is the last level's energy
+    from shapecorr.matching.deep_shells import deep_shells_layer, random_samples
+
+    gen = uniform.sample_generator(3)
+    sx = random_samples(batch.x.shape.n_verts, 150, generator=gen)
+    sy = random_samples(batch.y.shape.n_verts, 150, generator=gen)
+    out = deep_shells_layer(uniform.features(batch.x, sx), uniform.features(batch.y, sy),
+                            uniform.spectral_shape(batch.x), uniform.spectral_shape(batch.y), sx, sy, uniform.config)
+    with torch.no_grad():
+        assert torch.allclose(uniform.training_step(batch, 3), out.level_energies.mean(), rtol=1e-5)
+        assert torch.allclose(last.training_step(batch, 3), out.level_energies[-1], rtol=1e-5)
+    with pytest.raises(ConfigError, match="level_weights"):
+        DeepShells(**SMALL, level_weights=[1.0, 1.0])
+
+
+def test_sample_generator_depends_on_seed_epoch_batch():
+    model = DeepShells(**SMALL)
+    draw = lambda m, b: torch.randint(0, 10**6, (5,), generator=m.sample_generator(b))  # noqa: E731
+    assert torch.equal(draw(model, 4), draw(model, 4))
+    assert not torch.equal(draw(model, 4), draw(model, 5))
+    assert not torch.equal(draw(model, 4), draw(DeepShells(**{**SMALL, "seed": 1}), 4))
+
+
+def test_nan_features_raise_numerical_error(pair):
+    batch, _ = pair
+    model = DeepShells(**SMALL)
+    with torch.no_grad():
+        model.backbone.layers[0].bias[0, 0] = float("nan")
+    with pytest.raises(NumericalError):
+        model.training_step(batch, 0)
+    with pytest.raises(NumericalError, match="NaN"):
+        model.match(batch.x, batch.y)
+
+
+def test_match_valid_maps_and_recovers_permutation(pair):
+    batch, perm = pair
+    model = DeepShells(**{**SMALL, "backbone": "identity"})  # the descriptor is exact: an oracle
+    result = model.match(batch.x, batch.y).validate(batch.x.shape.n_verts, batch.y.shape.n_verts)
+    assert result.p2p.dtype == torch.int64 and result.p2p_inv.shape == (batch.y.shape.n_verts,)
+    assert (result.p2p.numpy() == perm).mean() > 0.8
+    # the learned backbone (random weights) still gives valid full-length maps
+    learned = DeepShells(**SMALL).match(batch.x, batch.y)
+    learned.validate(batch.x.shape.n_verts, batch.y.shape.n_verts)
+
+
+def test_cheap_validation_mode():
+    model = DeepShells(**SMALL, val_refine_levels=2)
+    cfg, refine = model.match_config()
+    assert refine and cfg.refine_levels == 4
+    model._validating_during_fit = True
+    cfg, refine = model.match_config()
+    assert refine and cfg.refine_levels == 2
+    model_off = DeepShells(**SMALL, val_refine_levels=0)
+    model_off._validating_during_fit = True
+    assert model_off.match_config()[1] is False
+
+
+def test_required_operators():
+    published = DeepShells()
+    # refinement up to k = 499 with k+9 sigmoid weights
+    assert published.required_operators == {"descriptors": ["shot"], "n_eig": 508}
+    assert DeepShells(refine=False).required_operators["n_eig"] == 200  # the filter bank's eigenpairs
+    assert DeepShells(backbone="identity", refine=False).required_operators["n_eig"] == 30  # k = 21 + 9
+    assert list(DeepShells(backbone="identity").parameters()) == []
+    assert DeepShells(backbone="identity").configure_optimizers() is None
+
+
+def test_invalid_options_raise_config_error():
+    with pytest.raises(ConfigError, match="backbone"):
+        DeepShells(backbone="resnet")
+    with pytest.raises(ConfigError, match="layer option"):
+        DeepShells(layer={"not_an_option": 1})
+    with pytest.raises(ConfigError, match="lr"):
+        DeepShells(lr=0.0)
+
+
+def test_checkpoint_roundtrip_without_arguments(tmp_path):
+    import pytorch_lightning as pl
+
+    model = DeepShells(**{**SMALL, "lr": 3e-4})
+    path = tmp_path / "m.ckpt"
+    torch.save({"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams),
+                "pytorch-lightning_version": pl.__version__}, path)
+    loaded = DeepShells.load_from_checkpoint(str(path))
+    assert loaded.lr == 3e-4 and loaded.config == model.config
+    for (name, a), (_, b) in zip(model.state_dict().items(), loaded.state_dict().items()):
+        assert torch.equal(a, b), name
+
+
+def _compose(name: str, overrides: list[str]):
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        return compose(name, overrides=overrides)
+
+
+def test_configs_compose_and_instantiate(tmp_path):
+    cfg = _compose("train", [f"paths.cache_dir={tmp_path}", "paths.output_dir=" + str(tmp_path), "model.lr=0.001",
+                             "model.level_weights=[0,0,0,0,1,1,1,1]"])
+    model = instantiate(cfg.model, _convert_="object")
+    assert isinstance(model, DeepShells) and model.lr == 1e-3
+    assert torch.allclose(model.level_weights, torch.tensor([0, 0, 0, 0, 0.25, 0.25, 0.25, 0.25]))
+    assert cfg.trainer.accelerator == "cpu" and cfg.logger._target_.endswith("TensorBoardLogger")
+    trainer = instantiate(cfg.trainer, logger=False, enable_checkpointing=False)
+    assert trainer.max_epochs == cfg.trainer.max_epochs
+
+    exp = _compose("train", ["experiment=deep_shells_faust_r", "data.root=/nonexistent", "logger=csv"])
+    assert exp.trainer.accumulate_grad_batches == 53 and exp.model.num_samples == 2000
+    assert exp.model.lr == 1e-4 and exp.trainer.limit_train_batches == 1.0
+    assert exp.data.splits.train.index_range == [0, 80]
+    assert exp.logger._target_.endswith("CSVLogger")
+
+    ablation = instantiate(_compose("evaluate", ["model=deep_shells_ablation"]).model, _convert_="object")
+    assert ablation.backbone is None and ablation.refine
+    ev = instantiate(_compose("evaluate", ["model=deep_shells", "model.backbone=identity"]).model, _convert_="object")
+    assert ev.backbone is None

@@ -1,0 +1,20 @@
+"""Train a learned correspondence model (default: Deep Shells on the embedded synthetic data); see configs/train.yaml.
+
+    python train.py
+    python train.py experiment=deep_shells_faust_r data.root=/path/to/FAUST_r trainer=gpu
+    python train.py ckpt_path=outputs/train/<run>/checkpoints/last.ckpt
+"""
+
+import hydra
+
+
+@hydra.main(version_base="1.3", config_path="configs", config_name="train")
+def main(cfg) -> None:
+    # Imported here so that `--help` and `--cfg job` answer without loading torch.
+    from shapecorr.cli.train import train
+
+    train(cfg)
+
+
+if __name__ == "__main__":
+    main()
