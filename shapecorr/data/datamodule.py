@@ -179,11 +179,11 @@ class ShapePairDataModule(pl.LightningDataModule):
     def ensure_data(self) -> None:
         """Generate the synthetic folder if this module is configured with one and it is missing."""
         if self.synthetic is not None:
-            from shapecorr.data.synthetic import SyntheticConfig, ensure_synthetic_dataset, preset
+            from shapecorr.data.synthetic import ensure_synthetic_dataset, preset
 
             options = dict(self.synthetic)
             name = options.pop("preset", "default")
-            _dataclass_from(SyntheticConfig, options)  # rejects unknown option names with the list of valid ones
+            # preset() rejects unknown option names with the list of valid ones
             ensure_synthetic_dataset(self.root, preset(name, **options))
 
     def shapes(self, split: str) -> ShapeDataset:

@@ -27,10 +27,6 @@ import numpy as np
 
 from shapecorr.errors import ConfigError
 
-#: Names of the three rotational degrees of freedom of every joint, in the order of :attr:`Bone.limits`.
-DOF_NAMES = ("flex", "abd", "twist")
-
-
 @dataclass(frozen=True)
 class Bone:
     """One bone of a kinematic tree.
@@ -147,16 +143,6 @@ class BodyPlan:
         """``(B, 3, 2)`` float64 joint limits in degrees."""
         return np.array([b.limits for b in self.bones], dtype=np.float64)
 
-    def mirror_bone(self) -> np.ndarray:
-        """``(B,)`` int64: index of the mirror-image bone (itself for bones on the symmetry plane)."""
-        names = self.bone_names
-        out = np.arange(len(names))
-        for i, name in enumerate(names):
-            for a, b in (("_l", "_r"), ("_r", "_l")):
-                if name.endswith(a):
-                    out[i] = names.index(name[: -len(a)] + b)
-        return out
-
 
 def bone_frames(heads: np.ndarray, tails: np.ndarray, refs: np.ndarray) -> np.ndarray:
     """Right-handed orthonormal bone frames ``[lat, ref, axis]``.
@@ -225,6 +211,10 @@ def _sided_primitives(specs, sided_bones: set[str]) -> list[Primitive]:
     return out
 
 
+def _point(a) -> tuple[float, float, float]:
+    return tuple(float(x) for x in a)
+
+
 def _along(head, tail, t):
     h, e = np.asarray(head, float), np.asarray(tail, float)
     return tuple(float(x) for x in h + t * (e - h))
@@ -241,16 +231,15 @@ def _human() -> BodyPlan:
     hand_end = wrist + 0.17 * arm_dir
     hip, knee, ankle = (0.095, 0.0, 0.90), (0.14, 0.0, 0.49), (0.16, -0.01, 0.09)
     toe = (0.17, 0.17, 0.03)
-    t = lambda a: tuple(float(x) for x in a)  # noqa: E731
     specs = [
         ("pelvis", None, (0.0, 0.0, 0.90), (0.0, 0.0, 1.05), fwd, ((-8, 8), (-8, 8), (-12, 12)), False),
         ("spine", "pelvis", (0.0, 0.0, 1.05), (0.0, 0.0, 1.25), fwd, ((-20, 40), (-25, 25), (-35, 35)), False),
         ("chest", "spine", (0.0, 0.0, 1.25), (0.0, 0.0, 1.46), fwd, ((-15, 25), (-20, 20), (-35, 35)), False),
         ("neck", "chest", (0.0, 0.0, 1.46), (0.0, 0.0, 1.57), fwd, ((-30, 40), (-25, 25), (-45, 45)), False),
         ("head", "neck", (0.0, 0.0, 1.57), (0.0, 0.0, 1.80), fwd, ((-20, 30), (-15, 15), (-30, 30)), False),
-        ("upper_arm", "chest", t(shoulder), t(elbow), fwd, ((-50, 150), (-110, 40), (-60, 60)), True),
-        ("forearm", "upper_arm", t(elbow), t(wrist), fwd, ((0, 135), (-5, 5), (-30, 30)), True),
-        ("hand", "forearm", t(wrist), t(hand_end), fwd, ((-60, 60), (-25, 25), (-20, 20)), True),
+        ("upper_arm", "chest", _point(shoulder), _point(elbow), fwd, ((-50, 150), (-110, 40), (-60, 60)), True),
+        ("forearm", "upper_arm", _point(elbow), _point(wrist), fwd, ((0, 135), (-5, 5), (-30, 30)), True),
+        ("hand", "forearm", _point(wrist), _point(hand_end), fwd, ((-60, 60), (-25, 25), (-20, 20)), True),
         ("thigh", "pelvis", hip, knee, fwd, ((-30, 110), (-45, 10), (-30, 30)), True),
         ("shin", "thigh", knee, ankle, fwd, ((-135, 0), (-3, 3), (-10, 10)), True),
         ("foot", "shin", ankle, toe, up, ((-40, 25), (-15, 15), (-15, 15)), True),
@@ -263,8 +252,8 @@ def _human() -> BodyPlan:
         Primitive("chest", "ellipsoid", (0.0, 0.01, 1.33), radii=(0.175, 0.11, 0.15)),
         Primitive("neck", "cone", (0.0, 0.0, 1.44), (0.0, 0.0, 1.60), 0.055, 0.05),
         Primitive("head", "ellipsoid", (0.0, 0.012, 1.68), radii=(0.078, 0.095, 0.115)),
-        Primitive("upper_arm", "cone", t(shoulder), t(elbow), 0.052, 0.040),
-        Primitive("forearm", "cone", t(elbow), t(wrist), 0.040, 0.030),
+        Primitive("upper_arm", "cone", _point(shoulder), _point(elbow), 0.052, 0.040),
+        Primitive("forearm", "cone", _point(elbow), _point(wrist), 0.040, 0.030),
         Primitive("hand", "ellipsoid", _along(wrist, hand_end, 0.45), radii=(0.048, 0.022, 0.085)),
         Primitive("thigh", "cone", hip, knee, 0.082, 0.052),
         Primitive("shin", "cone", knee, ankle, 0.050, 0.034),
