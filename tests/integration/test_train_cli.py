@@ -79,7 +79,7 @@ def test_sampler_order_depends_on_seed_and_epoch_and_resumes():
 def _objects(cache_dir, out_dir):
     with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
         cfg = compose("train", overrides=["debug=tiny", f"paths.cache_dir={cache_dir}",
-                                          f"paths.output_dir={out_dir}", "logger=null"])
+                                          f"paths.output_dir={out_dir}"])
     pl.seed_everything(0)
     dm = instantiate(cfg.data, _convert_="object")
     model = instantiate(cfg.model, _convert_="object")
