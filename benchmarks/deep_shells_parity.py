@@ -24,11 +24,10 @@ import argparse
 import datetime
 import json
 import os
-import platform
-import statistics
 import sys
-import time
 from pathlib import Path
+
+import bench_common
 
 import numpy as np
 import torch
@@ -44,35 +43,10 @@ ORIGINAL_QUERY_SECONDS = (12.8, 15.3)
 TRAIN_SAMPLES = 2000
 
 
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _versions() -> dict[str, str]:
-    import numpy
-    import potpourri3d  # noqa: F401 - heat geodesics
-    import scipy
-
-    return {"python": platform.python_version(), "torch": torch.__version__, "numpy": numpy.__version__,
-            "scipy": scipy.__version__}
-
-
 def _timed(fn, repeats: int):
     """Median wall and CPU seconds of ``fn()`` over ``repeats`` calls after one warm-up; last result."""
-    result = fn()
-    walls, cpus = [], []
-    for _ in range(repeats):
-        w, c = time.perf_counter(), time.process_time()
-        result = fn()
-        walls.append(time.perf_counter() - w)
-        cpus.append(time.process_time() - c)
-    return statistics.median(walls), statistics.median(cpus), result
+    walls, cpus, result = bench_common.timed(fn, repeats)
+    return bench_common.median(walls), bench_common.median(cpus), result
 
 
 def load_pair(golden: Path, pair: str):
@@ -150,9 +124,9 @@ def main(argv=None) -> int:
     report = {
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": {"cpu": _cpu_model(), "cores": os.cpu_count(), "gpu": None, "torch_threads": args.threads,
+        "machine": {"cpu": bench_common.cpu_model(), "cores": os.cpu_count(), "gpu": None, "torch_threads": args.threads,
                     "load_average_before": list(load_before)},
-        "versions": _versions(),
+        "versions": bench_common.package_versions(),
         "settings": {"repeats": args.repeats, "train_samples": TRAIN_SAMPLES, "geodesics": "heat (potpourri3d)",
                      "original_query_seconds": list(ORIGINAL_QUERY_SECONDS)},
         "pairs": {},

@@ -20,38 +20,17 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import statistics
 import sys
 import time
 from pathlib import Path
 
+import bench_common
+
 REPO = Path(__file__).resolve().parents[1]
 RESULT = REPO / "benchmarks" / "results" / "eval_baselines.json"
 #: Row normalizations of DescriptorNN measured (see configs/model/descriptor_nn.yaml for the default).
 NORMALIZATIONS = ("standardize", "l2", "none")
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _versions() -> dict[str, str]:
-    from importlib import metadata
-
-    out = {"python": platform.python_version()}
-    for dist in ("torch", "numpy", "scipy", "potpourri3d", "libigl", "trimesh", "matplotlib", "hydra-core", "shapecorr"):
-        try:
-            out[dist] = metadata.version(dist)
-        except metadata.PackageNotFoundError:
-            out[dist] = "not installed"
-    return out
 
 
 def _run(root: str, cache: str | None, out: Path, workers: int, geodesics: str, *overrides: str) -> dict:
@@ -121,8 +100,7 @@ def main(argv: list[str] | None = None) -> dict:
         "benchmark": "eval_baselines",
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": {"cpu": _cpu_model(), "cores": os.cpu_count(), "gpu": None},
-        "versions": _versions(),
+        "machine": bench_common.machine_info(),
         "dataset": "FAUST_r test: tr_reg_080..099, all 380 ordered pairs; geodesics: " + args.geodesics,
         "notes": [
             "identity_gt maps through the .vts ground truth; FAUST_r .vts files are not injective (5000 template "

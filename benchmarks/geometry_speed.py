@@ -21,18 +21,17 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import importlib.metadata
 import json
 import os
 import platform
 import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
+import bench_common
 from shapecorr.geometry.geodesics import geodesic_distances
 from shapecorr.geometry.laplacian import eigenbasis
 
@@ -42,36 +41,9 @@ TARGETS_S = {"eigenbasis_k200": 1.5, "eigenbasis_k500": 4.0, "geodesics_all_pair
 GEODESIC_WARMUP_SOURCES = 100
 
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def versions() -> dict:
-    out = {"python": platform.python_version()}
-    for dist in ("numpy", "scipy", "torch", "libigl", "potpourri3d", "robust-laplacian", "gpytoolbox",
-                 "trimesh", "threadpoolctl", "shapecorr"):
-        try:
-            out[dist] = importlib.metadata.version(dist)
-        except importlib.metadata.PackageNotFoundError:
-            out[dist] = None
-    return out
-
-
 def timed(fn, repeats: int, warmup=None) -> dict:
     """Median wall / CPU seconds of ``fn()`` over ``repeats`` runs after a warm-up (``warmup`` or ``fn``)."""
-    (warmup or fn)()
-    walls, cpus = [], []
-    for _ in range(repeats):
-        wall0, cpu0 = time.perf_counter(), time.process_time()
-        fn()
-        walls.append(time.perf_counter() - wall0)
-        cpus.append(time.process_time() - cpu0)
+    walls, cpus, _ = bench_common.timed(fn, repeats, warmup)
     return {
         "wall_median": {"value": statistics.median(walls), "unit": "s"},
         "cpu_median": {"value": statistics.median(cpus), "unit": "s"},
@@ -130,13 +102,13 @@ def main(argv=None) -> int:
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         "machine": {
-            "cpu": cpu_model(),
+            "cpu": bench_common.cpu_model(),
             "cores": os.cpu_count(),
             "platform": platform.platform(),
             "gpu": None,
             "load_average_1_5_15min_before": list(load_before),
             "load_average_1_5_15min_after": list(os.getloadavg()),
-            "versions": versions(),
+            "versions": bench_common.package_versions(),
         },
         "shape": {"name": args.shape, "n_verts": int(len(verts)), "n_faces": int(len(faces))},
         "repeats": args.repeats,

@@ -16,14 +16,14 @@ import argparse
 import json
 import math
 import os
-import platform
 import statistics
 import sys
 import time
 import tracemalloc
 from datetime import datetime, timezone
-from importlib import metadata
 from pathlib import Path
+
+import bench_common
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -88,32 +88,6 @@ def _frame_ties(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     return tie
 
 
-def _machine() -> dict:
-    cpu = platform.processor() or "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    versions = {"python": platform.python_version()}
-    for dist in ("numpy", "scipy", "libigl", "torch", "shapecorr"):
-        try:
-            versions[dist] = metadata.version(dist)
-        except metadata.PackageNotFoundError:
-            versions[dist] = None
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "platform": platform.platform(),
-        "gpu": None,
-        # The machine is shared: a load average above the core count inflates the timings.
-        "load_average_1_5_15min": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-        "versions": versions,
-    }
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument(
@@ -124,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "shot_parity.json"))
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per shape after one warm-up")
     args = parser.parse_args(argv)
-    machine = _machine()  # before the work, so the load average is the other users'
+    machine = bench_common.machine_info()  # before the work, so the load average is the other users'
     if not args.golden:
         parser.error(f"give --golden or set {GOLDEN_ENV}")
     golden = Path(args.golden)

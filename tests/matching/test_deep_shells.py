@@ -30,7 +30,7 @@ from shapecorr.matching.deep_shells import (
     random_samples,
     refine_deep_shells,
 )
-from shapecorr.matching.least_squares import normal_equations, ridge_lstsq, solve_normal_equations
+from shapecorr.matching.least_squares import ridge_lstsq, solve_normal_equations
 from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
 
 N_EIGS = 60

@@ -1,0 +1,87 @@
+"""Helpers shared by the benchmark scripts: machine description, package versions, timing.
+
+Imported by the scripts in this folder as ``from bench_common import ...`` (a script's own folder is first on
+``sys.path`` when it is run as ``python benchmarks/<name>.py``).
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import statistics
+import time
+from importlib import metadata
+from pathlib import Path
+
+#: Distributions whose versions every result records (a script may add its own).
+DEFAULT_PACKAGES = ("numpy", "scipy", "torch", "libigl", "potpourri3d", "robust-laplacian", "gpytoolbox",
+                    "trimesh", "threadpoolctl", "pytorch-lightning", "hydra-core", "shapecorr")
+
+
+def cpu_model() -> str:
+    """CPU model name from /proc/cpuinfo (Linux), else what ``platform`` knows."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def package_versions(packages=DEFAULT_PACKAGES) -> dict[str, str | None]:
+    """Installed versions of ``packages`` (None for a missing one), plus Python's."""
+    out: dict[str, str | None] = {"python": platform.python_version()}
+    for dist in packages:
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            out[dist] = None
+    return out
+
+
+def gpu_name() -> str | None:
+    """Name of CUDA device 0, or None."""
+    try:
+        import torch
+
+        return torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+    except Exception:  # noqa: BLE001 - a broken CUDA setup simply means "no GPU" here
+        return None
+
+
+def machine_info(packages=DEFAULT_PACKAGES) -> dict:
+    """CPU, cores, platform, GPU, current load average (timings on a shared machine are inflated when it
+    exceeds the core count) and package versions."""
+    return {
+        "cpu": cpu_model(),
+        "cores": os.cpu_count(),
+        "platform": platform.platform(),
+        "gpu": gpu_name(),
+        "load_average_1_5_15min": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "versions": package_versions(packages),
+    }
+
+
+def timed(fn, repeats: int, warmup=None):
+    """Run ``warmup`` (default ``fn``) once, then ``fn`` ``repeats`` times.
+
+    Returns
+    -------
+    walls, cpus : list[float]
+        Wall-clock and process-CPU seconds of every timed run.
+    result
+        What the last call of ``fn`` returned.
+    """
+    result = (warmup or fn)()
+    walls, cpus = [], []
+    for _ in range(repeats):
+        wall0, cpu0 = time.perf_counter(), time.process_time()
+        result = fn()
+        walls.append(time.perf_counter() - wall0)
+        cpus.append(time.process_time() - cpu0)
+    return walls, cpus, result
+
+
+def median(values) -> float:
+    return float(statistics.median(values))
