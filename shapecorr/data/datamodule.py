@@ -224,15 +224,20 @@ class ShapePairDataModule(pl.LightningDataModule):
             self.pairs(split)
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
-        sampler = None
-        if shuffle:
+        sampler, generator = None, None
+        if shuffle and (self.trainer is None or self.trainer.world_size == 1):
             # (seed, epoch)-determined order that can restart mid-epoch: resumed runs see the same pairs
             sampler = ResumableShuffleSampler(len(self.pairs(split)), self.shuffle_seed)
             sampler.resume_at(*_resume_position(self.trainer))
+        elif shuffle:
+            # several ranks: Lightning's DistributedSampler shuffles per (seed, epoch); resumption restarts the epoch
+            generator = torch.Generator().manual_seed(self.shuffle_seed)
         return DataLoader(
             self.pairs(split),
             batch_size=1,
+            shuffle=shuffle and sampler is None,
             sampler=sampler,
+            generator=generator,
             num_workers=self.num_workers,
             collate_fn=_first_item,
             persistent_workers=self.num_workers > 0,

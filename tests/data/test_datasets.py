@@ -55,7 +55,10 @@ def test_shape_dataset_items(folder, tmp_path):
 def test_prepare_fills_cache_then_reads(folder, tmp_path, monkeypatch):
     ds = ShapeDataset(folder, split="train", operators=OperatorConfig(n_eig=8), cache_dir=tmp_path)
     ds.prepare(num_workers=1, progress=False)
-    import shapecorr.geometry.laplacian as lap
+    import importlib
+
+    # (the package re-exports the function `laplacian`, which shadows the submodule as an attribute)
+    lap = importlib.import_module("shapecorr.geometry.laplacian")
 
     def fail(*a, **k):
         raise AssertionError("eigenbasis recomputed although cached")
@@ -156,3 +159,26 @@ def test_datamodule_rejects_unknown_options(folder):
         ShapePairDataModule(folder, splits={"train": {"index_rnage": [0, 1]}})
     with pytest.raises(ConfigError, match="n_eigs"):
         ShapePairDataModule(folder, operators={"n_eigs": 3})
+
+
+def test_mesh_cache_hit_and_invalidation(folder, tmp_path, monkeypatch):
+    import os
+    import shutil
+
+    import shapecorr.data.datasets as datasets_module
+
+    root = tmp_path / "copy"
+    shutil.copytree(folder, root)
+    first = ShapeDataset(root, operators=OperatorConfig(n_eig=4), cache_dir=tmp_path / "cache").load_shape(0)
+    calls = []
+    real = datasets_module.load_shape
+    monkeypatch.setattr(datasets_module, "load_shape", lambda *a, **k: calls.append(a) or real(*a, **k))
+    again = ShapeDataset(root, operators=OperatorConfig(n_eig=4), cache_dir=tmp_path / "cache").load_shape(0)
+    assert calls == []  # served from the cache, file not parsed
+    assert torch.equal(first.verts, again.verts) and torch.equal(first.faces, again.faces)
+    assert again.scale == first.scale and np.allclose(again.offset, first.offset)
+    # touching the file (new mtime) invalidates the entry
+    path = root / "off" / "shape_000.off"
+    os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 10**9))
+    ShapeDataset(root, operators=OperatorConfig(n_eig=4), cache_dir=tmp_path / "cache").load_shape(0)
+    assert len(calls) == 1

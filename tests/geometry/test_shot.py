@@ -7,6 +7,8 @@ import os
 from pathlib import Path
 
 import gpytoolbox
+import importlib
+
 import numpy as np
 import pytest
 import torch
@@ -14,7 +16,6 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-import shapecorr.geometry.shot as shot_module
 from shapecorr.errors import ConfigError, InvalidMeshError
 from shapecorr.geometry.normals import vertex_normals
 from shapecorr.geometry.shot import (
@@ -24,6 +25,9 @@ from shapecorr.geometry.shot import (
     shot_lrf,
     vertex_normals_for_shot,
 )
+
+# the package re-exports the function `shot`, which shadows the submodule as an attribute
+shot_module = importlib.import_module("shapecorr.geometry.shot")
 
 GOLDEN_ENV = "SHAPECORR_DEEP_SHELLS_GOLDEN"
 GOLDEN_PAIRS = ("tr_reg_080__tr_reg_081", "tr_reg_090__tr_reg_095")
