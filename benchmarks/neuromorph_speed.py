@@ -21,12 +21,16 @@ FAUST_r shapes decimated to ~2000 vertices instead. Geodesic matrices: heat meth
 (``shapecorr.geometry.geodesics``), only their size matters for the timing.
 
 The machine is shared: wall-clock medians are reported together with the process CPU time per step and
-the load average before and after, so that contention is visible.
+the load average before and after, so that contention is visible. Every configuration runs with torch's
+thread count(s) from ``--threads`` and, with ``--malloc no-mmap``, with glibc told to keep freed large
+blocks (``MALLOC_MMAP_THRESHOLD_``/``MALLOC_TRIM_THRESHOLD_``): by default every large CPU tensor is a fresh
+``mmap`` whose pages fault in on first touch, which costs as much as the arithmetic at T = 7.
 
 Usage::
 
-    python benchmarks/neuromorph_speed.py [--threads 2 1] [--repeats 5] [--faust-root DIR] [--glibc-no-mmap]
-        [--variants fast naive fast_bf16] [--out benchmarks/results/neuromorph_speed.json]
+    python benchmarks/neuromorph_speed.py [--threads 2 1] [--repeats 5] [--naive-repeats 2] [--faust-root DIR]
+        [--variants fast naive fast_bf16] [--malloc default no-mmap]
+        [--out benchmarks/results/neuromorph_speed.json]
 """
 
 from __future__ import annotations
@@ -226,8 +230,11 @@ def main(argv=None) -> None:
     parser.add_argument("--steps", type=int, nargs="+", default=[0, 7], help="values of T")
     parser.add_argument("--variants", nargs="+", default=["fast", "naive", "fast_bf16"],
                         choices=["fast", "naive", "fast_bf16"])
-    parser.add_argument("--glibc-no-mmap", action="store_true",
-                        help="run the steps with MALLOC_MMAP_THRESHOLD_/MALLOC_TRIM_THRESHOLD_ raised (glibc)")
+    parser.add_argument("--malloc", nargs="+", default=["default", "no-mmap"], choices=["default", "no-mmap"],
+                        help="glibc malloc settings to run: as is, and/or MALLOC_MMAP_THRESHOLD_/"
+                             "MALLOC_TRIM_THRESHOLD_ raised (only the 'fast' variant runs with both)")
+    parser.add_argument("--naive-repeats", type=int, default=2,
+                        help="repeats of the (slow) naive reference; its median gives the speed-up ratio")
     parser.add_argument("--faust-root", default=None)
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "neuromorph_speed.json"))
     parser.add_argument("--cache", default="/tmp/shapecorr_neuromorph_speed.npz")
@@ -245,46 +252,54 @@ def main(argv=None) -> None:
     for threads in args.threads:
         for steps in args.steps:
             for variant in args.variants:
-                cmd = [sys.executable, __file__, "--single", "--variant", variant, "--steps", str(steps),
-                       "--threads", str(threads), "--repeats", str(args.repeats), "--warmup",
-                       str(args.warmup), "--cache", args.cache]
-                env = dict(os.environ, **(GLIBC_NO_MMAP_ENV if args.glibc_no_mmap else {}))
-                out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
-                res = dict(json.loads(out.strip().splitlines()[-1]), threads=threads)
-                results.append(res)
-                print(f"threads={threads} T={steps} {variant:9s}: {res['seconds_per_step_median']:.3f} s/step "
-                      f"(cpu {res['cpu_seconds_per_step_median']:.3f} s), peak RSS {res['peak_rss_mib']:.0f} MiB",
-                      flush=True)
+                for malloc in args.malloc:
+                    if variant != "fast" and malloc != "default":
+                        continue  # the malloc comparison is for the main variant only
+                    repeats = args.naive_repeats if variant == "naive" else args.repeats
+                    cmd = [sys.executable, __file__, "--single", "--variant", variant, "--steps", str(steps),
+                           "--threads", str(threads), "--repeats", str(repeats), "--warmup",
+                           str(args.warmup), "--cache", args.cache]
+                    env = dict(os.environ, **(GLIBC_NO_MMAP_ENV if malloc == "no-mmap" else {}))
+                    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
+                    res = dict(json.loads(out.strip().splitlines()[-1]), threads=threads, malloc=malloc)
+                    results.append(res)
+                    print(f"threads={threads} T={steps} {variant:9s} malloc={malloc:7s}: "
+                          f"{res['seconds_per_step_median']:.3f} s/step (cpu {res['cpu_seconds_per_step_median']:.3f}"
+                          f" s), peak RSS {res['peak_rss_mib']:.0f} MiB", flush=True)
     load_after = os.getloadavg()
     summary = {}
     for threads in args.threads:
         for steps in args.steps:
-            by = {r["variant"]: r for r in results if r["T"] == steps and r["threads"] == threads}
-            entry = {}
-            if "fast" in by:
-                entry["fast_seconds"] = by["fast"]["seconds_per_step_median"]
-                if steps in TARGET_SECONDS:
-                    entry["target_seconds"] = TARGET_SECONDS[steps]
-                    entry["meets_target"] = entry["fast_seconds"] <= TARGET_SECONDS[steps]
-                if steps == 0:
-                    entry["speedup_vs_original_5s"] = ORIGINAL_SECONDS_T0 / entry["fast_seconds"]
-            if "fast_bf16" in by:
-                entry["fast_bf16_seconds"] = by["fast_bf16"]["seconds_per_step_median"]
-            if "fast" in by and "naive" in by:
-                naive_s, fast_s = by["naive"]["seconds_per_step_median"], by["fast"]["seconds_per_step_median"]
-                entry["speedup_vs_naive_same_run"] = naive_s / fast_s
-            summary[f"threads={threads} T={steps}"] = entry
+            for malloc in args.malloc:
+                by = {r["variant"]: r for r in results
+                      if r["T"] == steps and r["threads"] == threads and r["malloc"] == malloc}
+                entry = {}
+                if "fast" in by:
+                    entry["fast_seconds"] = by["fast"]["seconds_per_step_median"]
+                    if steps in TARGET_SECONDS:
+                        entry["target_seconds"] = TARGET_SECONDS[steps]
+                        entry["meets_target"] = entry["fast_seconds"] <= TARGET_SECONDS[steps]
+                    if steps == 0:
+                        entry["speedup_vs_original_5s"] = ORIGINAL_SECONDS_T0 / entry["fast_seconds"]
+                if "fast_bf16" in by:
+                    entry["fast_bf16_seconds"] = by["fast_bf16"]["seconds_per_step_median"]
+                if "fast" in by and "naive" in by and malloc == "default":
+                    naive_s, fast_s = by["naive"]["seconds_per_step_median"], by["fast"]["seconds_per_step_median"]
+                    entry["naive_seconds"] = naive_s
+                    entry["speedup_vs_naive_same_run"] = naive_s / fast_s
+                summary[f"threads={threads} T={steps} malloc={malloc}"] = entry
     report = {
         "benchmark": "neuromorph_speed",
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         "machine": {"cpu": _cpu_model(), "logical_cpus": os.cpu_count(), "gpu": None,
                     "torch_threads_runs": args.threads,
-                    "glibc_malloc_env": GLIBC_NO_MMAP_ENV if args.glibc_no_mmap else None,
+                    "glibc_malloc_env_for_no_mmap": GLIBC_NO_MMAP_ENV,
                     "load_average_before": load_before, "load_average_after": load_after},
         "software": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__},
         "data": source,
-        "protocol": {"warmup": args.warmup, "repeats": args.repeats, "statistic": "median wall-clock seconds per step",
+        "protocol": {"warmup": args.warmup, "repeats": args.repeats, "naive_repeats": args.naive_repeats,
+                     "statistic": "median wall-clock seconds per step",
                      "step": "feature net on x and y, softmax, interpolator (T+1 frames), registration + ARAP + "
                              "geodesic losses, backward"},
         "units": {"seconds_per_step_median": "s", "peak_rss_mib": "MiB (process peak resident set size)"},

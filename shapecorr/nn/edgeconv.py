@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -115,8 +116,17 @@ class ResnetBlockFC(nn.Module):
         return torch.eye(self.out_channels, dtype=self.fc0.weight.dtype, device=self.fc0.weight.device)
 
 
-def _edge_index(edges: torch.Tensor, n_verts: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    """Validate an undirected edge list; return its two columns as int64 on ``device``."""
+class _Graph(NamedTuple):
+    """A validated undirected edge list: endpoints, which vertices have an edge, how many do."""
+
+    a: torch.Tensor
+    b: torch.Tensor
+    has_edge: torch.Tensor  # (n, 1) bool
+    n_receiving: int
+
+
+def _edge_index(edges: torch.Tensor, n_verts: int, device: torch.device) -> _Graph:
+    """Validate an undirected edge list once (the checks synchronize a GPU) for all layers using it."""
     if edges.ndim != 2 or edges.shape[1] != 2 or edges.shape[0] == 0:
         raise ConfigError(f"edges must be a non-empty (E, 2) index tensor, got shape {tuple(edges.shape)}")
     if edges.dtype.is_floating_point:
@@ -124,7 +134,9 @@ def _edge_index(edges: torch.Tensor, n_verts: int, device: torch.device) -> tupl
     edges = edges.to(device=device, dtype=torch.int64)
     if int(edges.min()) < 0 or int(edges.max()) >= n_verts:
         raise ConfigError(f"edges index vertices outside [0, {n_verts})")
-    return edges[:, 0], edges[:, 1]
+    has_edge = torch.zeros(n_verts, 1, dtype=torch.bool, device=device)
+    has_edge[edges.reshape(-1)] = True
+    return _Graph(edges[:, 0], edges[:, 1], has_edge, int(has_edge.sum()))
 
 
 def _flat_rows(index: torch.Tensor, n_rows: int, n_batch: int) -> torch.Tensor:
@@ -339,10 +351,12 @@ class EdgeConv(nn.Module):
             raise ConfigError(
                 f"shared must have shape {(*x.shape[:-2], self.shared_channels)}, got {tuple(shared.shape)}"
             )
-        a, b = _edge_index(edges, x.shape[-2], x.device)
+        return self._apply_graph(x, _edge_index(edges, x.shape[-2], x.device), shared, fast)
+
+    def _apply_graph(self, x: torch.Tensor, graph: _Graph, shared: torch.Tensor | None, fast: bool) -> torch.Tensor:
         if fast:
-            return self._forward_fast(x, a, b, shared)
-        return self._forward_reference(x, a, b, shared)
+            return self._forward_fast(x, graph, shared)
+        return self._forward_reference(x, graph.a, graph.b, shared)
 
     def _forward_reference(
         self, x: torch.Tensor, a: torch.Tensor, b: torch.Tensor, shared: torch.Tensor | None
@@ -361,10 +375,9 @@ class EdgeConv(nn.Module):
         out = out.scatter_reduce(0, index, messages, reduce="amax", include_self=False)
         return out.view(*batch, n, self.out_channels)
 
-    def _forward_fast(
-        self, x: torch.Tensor, a: torch.Tensor, b: torch.Tensor, shared: torch.Tensor | None
-    ) -> torch.Tensor:
+    def _forward_fast(self, x: torch.Tensor, graph: _Graph, shared: torch.Tensor | None) -> torch.Tensor:
         """Restructured EdgeConv (module docstring, items 1-4); same function as the reference."""
+        a, b = graph.a, graph.b
         batch, (n, c) = x.shape[:-2], x.shape[-2:]
         n_batch = math.prod(batch)
         cu = c + self.shared_channels
@@ -396,14 +409,12 @@ class EdgeConv(nn.Module):
         # Directed messages in the order: all (receiver a <- sender b), then all (b <- a), per batch element.
         receivers = _flat_rows(torch.cat((a, b)), n, n_batch)
         senders = _flat_rows(torch.cat((b, a)), n, n_batch)
-        has_edge = torch.zeros(n, 1, dtype=x.dtype, device=x.device)
-        has_edge[a] = 1
-        has_edge[b] = 1
-        n_winners = n_batch * out_ch * int(has_edge.sum())
+        n_winners = n_batch * out_ch * graph.n_receiving
         aggregated = _MessagesMax.apply(
             pre_vertex, edge_term, neigh_term, blk.fc1.weight, receivers, senders, n_batch, n_winners
         )
-        out = aggregated.view(n_batch, n, out_ch) + self_term.view(n_batch, n, out_ch) * has_edge
+        # A vertex without edges gets 0 (no message), not its shortcut term.
+        out = aggregated.view(n_batch, n, out_ch) + self_term.view(n_batch, n, out_ch) * graph.has_edge.to(x.dtype)
         return out.view(*batch, n, out_ch)
 
 
@@ -469,11 +480,12 @@ class ResnetEC(nn.Module):
         """
         if p.shape[-1] != self.in_channels:
             raise ConfigError(f"ResnetEC expects {self.in_channels} input channels, got {p.shape[-1]}")
-        net = self.blocks[0](self.fc_pos(p), edges, fast=fast)
+        graph = _edge_index(edges, p.shape[-2], p.device)
+        net = self.blocks[0]._apply_graph(self.fc_pos(p), graph, None, fast)
         for layer in self.blocks[1:]:
             if self.pool == "global":
-                net = layer(torch.cat((net, p), dim=-1), edges, shared=net.amax(dim=-2), fast=fast)
+                net = layer._apply_graph(torch.cat((net, p), dim=-1), graph, net.amax(dim=-2), fast)
             else:
                 pooled = net.amax(dim=-1, keepdim=True).expand_as(net)
-                net = layer(torch.cat((net, p, pooled), dim=-1), edges, fast=fast)
+                net = layer._apply_graph(torch.cat((net, p, pooled), dim=-1), graph, None, fast)
         return self.fc_out(F.relu(net))

@@ -88,10 +88,10 @@ def _objects(cache_dir, out_dir):
 
 
 def _trainer(out_dir, callbacks=(), **kwargs):
-    return pl.Trainer(accelerator="cpu", devices=1, max_epochs=2, limit_train_batches=3, limit_val_batches=1,
-                      num_sanity_val_steps=0, logger=False, enable_progress_bar=False, enable_model_summary=False,
-                      callbacks=list(callbacks), enable_checkpointing=bool(callbacks), default_root_dir=str(out_dir),
-                      **kwargs)
+    options = dict(accelerator="cpu", devices=1, max_epochs=2, limit_train_batches=3, limit_val_batches=1,
+                   num_sanity_val_steps=0, logger=False, enable_progress_bar=False, enable_model_summary=False,
+                   callbacks=list(callbacks), enable_checkpointing=bool(callbacks), default_root_dir=str(out_dir))
+    return pl.Trainer(**{**options, **kwargs})
 
 
 def test_resume_mid_epoch_matches_uninterrupted_run(cache_dir, tmp_path):
@@ -105,10 +105,10 @@ def test_resume_mid_epoch_matches_uninterrupted_run(cache_dir, tmp_path):
     # interrupted after 4 steps (mid second epoch), checkpoint written at that step
     dm, model = _objects(cache_dir, tmp_path / "b")
     ckpt = ModelCheckpoint(dirpath=str(tmp_path / "b" / "ckpt"), every_n_train_steps=4, save_top_k=-1,
-                           filename="step{step}")
+                           filename="step{step}", auto_insert_metric_name=False)
     _trainer(tmp_path / "b", [ckpt], max_steps=4).fit(model, datamodule=dm)
     path = tmp_path / "b" / "ckpt" / "step4.ckpt"
-    assert path.is_file()
+    assert path.is_file(), sorted(p.name for p in (tmp_path / "b" / "ckpt").iterdir())
     assert not torch.equal(model.state_dict()["backbone.layers.0.weight"], weights["backbone.layers.0.weight"])
 
     # a fresh process state: new objects, resumed from the checkpoint
