@@ -5,7 +5,7 @@ Times (median over ``--repeats`` runs after one warm-up run):
 * ``eigenbasis`` with 200 and 500 eigenpairs (target on the 2-core development CPU: < 1.5 s and < 4 s);
 * the full all-pairs geodesic matrix with the heat method (target: < 15 s), with 1 and with
   ``--geodesic-jobs`` worker processes;
-* SHOT at every vertex (``shapecorr.geometry.shot.shot``; skipped with a note if that module is missing).
+* SHOT at every vertex (``shapecorr.geometry.shot_descriptor.shot``; skipped with a note if that module is missing).
 
 The development machine is shared: every number is reported as wall-clock time together with the CPU time of
 this process (for the multi-process geodesic run, the workers' CPU time is not included), and the load
@@ -33,7 +33,7 @@ import trimesh
 
 import bench_common
 from shapecorr.geometry.geodesics import geodesic_distances
-from shapecorr.geometry.laplacian import eigenbasis
+from shapecorr.geometry.laplace_beltrami import eigenbasis
 
 #: Targets of the "Foundation" issue on the 2-core development CPU, in seconds.
 TARGETS_S = {"eigenbasis_k200": 1.5, "eigenbasis_k500": 4.0, "geodesics_all_pairs_heat": 15.0}
@@ -85,9 +85,9 @@ def main(argv=None) -> int:
 
     notes = []
     try:
-        from shapecorr.geometry.shot import shot
+        from shapecorr.geometry.shot_descriptor import shot
     except ImportError as err:
-        notes.append(f"SHOT skipped: shapecorr.geometry.shot.shot not importable ({err})")
+        notes.append(f"SHOT skipped: shapecorr.geometry.shot_descriptor.shot not importable ({err})")
     else:
         results["shot_all_vertices"] = timed(lambda: shot(verts, faces), args.repeats)
         print(f"SHOT: {results['shot_all_vertices']['wall_median']['value']:.2f} s", flush=True)

@@ -1,7 +1,7 @@
 """SHOT parity and speed against the original C++ SHOT of the Deep Shells preprocessing.
 
 For the four FAUST_r shapes of the Deep Shells reference data (``inputs_<x>__<y>.npz``: ``s_verts``,
-``s_faces``, ``s_shot``), computes :func:`shapecorr.geometry.shot.shot` with its defaults and reports the
+``s_faces``, ``s_shot``), computes :func:`shapecorr.geometry.shot_descriptor.shot` with its defaults and reports the
 per-vertex cosine similarity to the stored SHOT (quantiles, mean), the same for two variants (area-weighted
 normals; ``legacy=False``), how the disagreements split between frame-sign ties and the rest, the runtime
 (median of ``--repeats`` runs after one warm-up), the peak memory of one call, and the neighbour counts.
@@ -28,7 +28,7 @@ import bench_common
 import numpy as np
 from scipy.spatial import cKDTree
 
-from shapecorr.geometry.shot import (
+from shapecorr.geometry.shot_descriptor import (
     SHOT_RADIUS_FRACTION,
     SHOT_REFERENCE_AREA,
     shot,

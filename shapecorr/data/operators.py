@@ -6,7 +6,7 @@ parameters, operator version) and stored in the :class:`~shapecorr.data.cache.Sh
 a separate cache entry, so changing e.g. the number of WKS energies does not recompute the eigenbasis.
 
 Conventions: eigenvalues are in shapecorr's standard scale (½(cot a + cot b) stiffness; the original Deep
-Shells/Smooth Shells scale is 2x, see :mod:`shapecorr.geometry.laplacian`); descriptors are computed on the
+Shells/Smooth Shells scale is 2x, see :mod:`shapecorr.geometry.laplace_beltrami`); descriptors are computed on the
 normalized shape (the normalization is part of the cached mesh content, so a different normalization is a
 different entry).
 """
@@ -72,7 +72,7 @@ def _eigen_params(cfg: OperatorConfig, k: int) -> dict:
 
 def eigenbasis_cached(cache: ShapeCache, verts, faces, cfg: OperatorConfig, k: int | None = None) -> dict:
     """``{"evals": (k,), "evecs": (n, k), "mass": (n,)}`` from the cache, computing it on a miss."""
-    from shapecorr.geometry.laplacian import eigenbasis
+    from shapecorr.geometry.laplace_beltrami import eigenbasis
 
     k = cfg.n_eig if k is None else k
 
@@ -86,7 +86,7 @@ def eigenbasis_cached(cache: ShapeCache, verts, faces, cfg: OperatorConfig, k: i
 def descriptor_cached(cache: ShapeCache, verts, faces, cfg: OperatorConfig, name: str) -> np.ndarray:
     """One descriptor ``(n, c)`` from the cache, computing it (and the eigenbasis it needs) on a miss."""
     if name == "shot":
-        from shapecorr.geometry.shot import shot
+        from shapecorr.geometry.shot_descriptor import shot
 
         params = {"radius_factor": cfg.shot_radius_factor}
 

@@ -8,12 +8,12 @@ Differentiable (torch): :func:`spectral_coefficients`, :func:`smooth_shell`, :fu
 
 from shapecorr.geometry.descriptors import hks, wks
 from shapecorr.geometry.geodesics import geodesic_distances
-from shapecorr.geometry.laplacian import ORIGINAL_EIGENVALUE_FACTOR, eigenbasis, laplacian
+from shapecorr.geometry.laplace_beltrami import ORIGINAL_EIGENVALUE_FACTOR, eigenbasis, laplacian
 from shapecorr.geometry.normals import face_normals, vertex_normals
-from shapecorr.geometry.remesh import remesh
+from shapecorr.geometry.remeshing import remesh
 from shapecorr.geometry.sampling import farthest_point_sampling
 from shapecorr.geometry.shells import sigmoid_shell_weights, smooth_shell, spectral_coefficients
-from shapecorr.geometry.shot import shot
+from shapecorr.geometry.shot_descriptor import shot
 
 __all__ = [
     "ORIGINAL_EIGENVALUE_FACTOR",

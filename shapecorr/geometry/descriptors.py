@@ -20,7 +20,7 @@ Normalization (``normalize``), per column (time or energy):
   uniform scaling** of the shape (eigenvalues scale by ``1/s^2``, squared eigenfunctions by ``1/s^2``).
 
 All variants are invariant to rigid motions (they only depend on the intrinsic eigenpairs). Eigenpairs
-must be those of :func:`shapecorr.geometry.laplacian.eigenbasis` (mass-orthonormal); eigenvalues in the
+must be those of :func:`shapecorr.geometry.laplace_beltrami.eigenbasis` (mass-orthonormal); eigenvalues in the
 original Smooth/Deep Shells scale are 2x ours (``ORIGINAL_EIGENVALUE_FACTOR``).
 
 Smooth Shells' HKS (methods-digest §1.3: 200 eigenpairs without the constant, 100 times log-spaced in
@@ -37,7 +37,7 @@ import math
 import numpy as np
 
 from shapecorr.errors import ConfigError, NumericalError
-from shapecorr.geometry.laplacian import _as_numpy
+from shapecorr.geometry.laplace_beltrami import _as_numpy
 
 #: HKS default time range (Sun et al. 2009, §5): t_min = 4 ln 10 / lambda_max, t_max = 4 ln 10 / lambda_min
 #: (lambda_min the smallest nonzero eigenvalue used): exp(-t lambda) spans 1e-4 .. 1 over the used band.

@@ -22,7 +22,6 @@ from collections import OrderedDict
 
 import numpy as np
 import pytorch_lightning as pl
-import torch
 
 from shapecorr.eval import metrics
 from shapecorr.eval.protocol import score_map

@@ -18,7 +18,7 @@ from shapecorr.geometry.descriptors import (
     wks,
     wks_energies,
 )
-from shapecorr.geometry.laplacian import ORIGINAL_EIGENVALUE_FACTOR, eigenbasis
+from shapecorr.geometry.laplace_beltrami import ORIGINAL_EIGENVALUE_FACTOR, eigenbasis
 
 K = 60
 

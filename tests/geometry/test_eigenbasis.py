@@ -1,4 +1,4 @@
-"""Tests of shapecorr.geometry.laplacian.eigenbasis: orthonormality, sphere spectrum, determinism,
+"""Tests of shapecorr.geometry.laplace_beltrami.eigenbasis: orthonormality, sphere spectrum, determinism,
 components, removed vertices, the sliced solver, and (opt-in) parity with the original preprocessing."""
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import scipy.sparse as sp
 import trimesh
 
 from shapecorr.errors import ConfigError
-from shapecorr.geometry import laplacian as lap
-from shapecorr.geometry.laplacian import ORIGINAL_EIGENVALUE_FACTOR, eigenbasis, laplacian
+from shapecorr.geometry import laplace_beltrami as lap
+from shapecorr.geometry.laplace_beltrami import ORIGINAL_EIGENVALUE_FACTOR, eigenbasis, laplacian
 
 
 def unit_sphere(subdivisions: int):

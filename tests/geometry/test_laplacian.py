@@ -1,4 +1,4 @@
-"""Tests of shapecorr.geometry.laplacian.laplacian: convention, oracles, properties, errors."""
+"""Tests of shapecorr.geometry.laplace_beltrami.laplacian: convention, oracles, properties, errors."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import torch
 import trimesh
 
 from shapecorr.errors import ConfigError, InvalidMeshError
-from shapecorr.geometry.laplacian import ORIGINAL_EIGENVALUE_FACTOR, laplacian
+from shapecorr.geometry.laplace_beltrami import ORIGINAL_EIGENVALUE_FACTOR, laplacian
 
 
 def bumpy_sphere(subdivisions: int = 2, seed: int = 0, amplitude: float = 0.1):

@@ -1,4 +1,4 @@
-"""Tests of shapecorr.geometry.sampling (farthest point sampling) and shapecorr.geometry.remesh."""
+"""Tests of shapecorr.geometry.sampling (farthest point sampling) and shapecorr.geometry.remeshing."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import torch
 import trimesh
 
 from shapecorr.errors import ConfigError, InvalidMeshError
-from shapecorr.geometry.remesh import REMESH_RTOL, remesh
+from shapecorr.geometry.remeshing import REMESH_RTOL, remesh
 from shapecorr.geometry.sampling import farthest_point_sampling
 
 

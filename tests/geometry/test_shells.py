@@ -10,7 +10,7 @@ import torch
 import trimesh
 
 from shapecorr.errors import ConfigError
-from shapecorr.geometry.laplacian import eigenbasis, laplacian
+from shapecorr.geometry.laplace_beltrami import eigenbasis, laplacian
 from shapecorr.geometry.normals import face_normals, vertex_normals
 from shapecorr.geometry.shells import (
     SHELL_SMOOTH_WIDTH,

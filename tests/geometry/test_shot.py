@@ -1,4 +1,4 @@
-"""Tests of shapecorr.geometry.shot (SHOT descriptor, Tombari et al. ECCV 2010)."""
+"""Tests of shapecorr.geometry.shot_descriptor (SHOT descriptor, Tombari et al. ECCV 2010)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,6 @@ import os
 from pathlib import Path
 
 import gpytoolbox
-import importlib
 
 import numpy as np
 import pytest
@@ -16,18 +15,16 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+import shapecorr.geometry.shot_descriptor as shot_module
 from shapecorr.errors import ConfigError, InvalidMeshError
 from shapecorr.geometry.normals import vertex_normals
-from shapecorr.geometry.shot import (
+from shapecorr.geometry.shot_descriptor import (
     SHOT_REFERENCE_AREA,
     shot,
     shot_descriptor_length,
     shot_lrf,
     vertex_normals_for_shot,
 )
-
-# the package re-exports the function `shot`, which shadows the submodule as an attribute
-shot_module = importlib.import_module("shapecorr.geometry.shot")
 
 GOLDEN_ENV = "SHAPECORR_DEEP_SHELLS_GOLDEN"
 GOLDEN_PAIRS = ("tr_reg_080__tr_reg_081", "tr_reg_090__tr_reg_095")

@@ -12,10 +12,10 @@ from scipy.spatial import cKDTree
 
 from shapecorr.data.shape import triangle_areas
 from shapecorr.errors import ConfigError, InvalidMeshError, NumericalError
-from shapecorr.geometry.laplacian import eigenbasis
+from shapecorr.geometry.laplace_beltrami import eigenbasis
 from shapecorr.geometry.normals import vertex_normals
-from shapecorr.geometry.remesh import remesh
-from shapecorr.geometry.shot import shot
+from shapecorr.geometry.remeshing import remesh
+from shapecorr.geometry.shot_descriptor import shot
 from shapecorr.matching.deep_shells import (
     DeepShellsConfig,
     _shell,

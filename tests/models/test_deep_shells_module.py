@@ -19,7 +19,7 @@ from hydra.utils import instantiate
 from shapecorr.data.datasets import PairSample, ShapeSample
 from shapecorr.data.shape import make_shape
 from shapecorr.errors import ConfigError, NumericalError
-from shapecorr.geometry.laplacian import eigenbasis
+from shapecorr.geometry.laplace_beltrami import eigenbasis
 from shapecorr.models.deep_shells import DeepShells
 
 REPO = Path(__file__).resolve().parents[2]

@@ -47,7 +47,7 @@ from shapecorr.data.synthetic.skinning import (
 )
 from shapecorr.data.synthetic.templates import Template, build_template
 from shapecorr.errors import DatasetError, InvalidMeshError
-from shapecorr.geometry.remesh import remesh
+from shapecorr.geometry.remeshing import remesh
 from shapecorr.geometry.sampling import farthest_point_sampling
 
 #: Rotation from the generator's axes (x right, y forward, z up; skeleton.py) to the axes of the written

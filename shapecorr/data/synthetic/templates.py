@@ -26,7 +26,7 @@ from scipy.special import logsumexp
 from shapecorr.data.synthetic.meshing import clean_surface, extract_surface, topology_report
 from shapecorr.data.synthetic.skeleton import BodyPlan, plan_frames
 from shapecorr.errors import InvalidMeshError, NumericalError
-from shapecorr.geometry.remesh import remesh
+from shapecorr.geometry.remeshing import remesh
 
 #: Marching-cubes grid spacing (m) of the templates; the thinnest parts (wrists, tail tip) are >= 0.02 m in radius.
 DEFAULT_GRID_STEP = 0.01

@@ -24,7 +24,7 @@ import numpy as np
 
 from shapecorr.data.shape import triangle_areas
 from shapecorr.errors import ConfigError, InvalidMeshError, NumericalError
-from shapecorr.geometry.laplacian import mesh_arrays
+from shapecorr.geometry.laplace_beltrami import mesh_arrays
 
 #: Iterations of the Botsch-Kobbelt remesher per run (gpytoolbox's default, 10, is enough to equalize
 #: edge lengths on scans; more mostly moves vertices tangentially).
