@@ -362,7 +362,7 @@ class EdgeConv(nn.Module):
         self, x: torch.Tensor, a: torch.Tensor, b: torch.Tensor, shared: torch.Tensor | None
     ) -> torch.Tensor:
         """Plain EdgeConv: the full block on every directed message, then the max (torch's own autograd)."""
-        batch, (n, c) = x.shape[:-2], x.shape[-2:]
+        batch, n = x.shape[:-2], x.shape[-2]
         n_batch = math.prod(batch)
         u = x if shared is None else torch.cat((x, shared.unsqueeze(-2).expand(*x.shape[:-1], -1)), dim=-1)
         u = u.reshape(n_batch * n, -1)
