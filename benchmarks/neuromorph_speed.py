@@ -51,6 +51,7 @@ import igl
 import numpy as np
 import torch
 
+import bench_common
 from shapecorr.data.shape import make_shape
 from shapecorr.geometry.geodesics import geodesic_distances
 from shapecorr.geometry.mesh_graph import undirected_edges
@@ -192,16 +193,6 @@ def run_single(args) -> dict:
     }
 
 
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
 def _prepare(args) -> dict:
     """Build the two shapes and their geodesic matrices once; save them for the subprocesses."""
     root = args.faust_root or os.environ.get("SHAPECORR_FAUST_R")
@@ -292,7 +283,7 @@ def main(argv=None) -> None:
         "benchmark": "neuromorph_speed",
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-        "machine": {"cpu": _cpu_model(), "logical_cpus": os.cpu_count(), "gpu": None,
+        "machine": {"cpu": bench_common.cpu_model(), "logical_cpus": os.cpu_count(), "gpu": None,
                     "torch_threads_runs": args.threads,
                     "glibc_malloc_env_for_no_mmap": GLIBC_NO_MMAP_ENV,
                     "load_average_before": load_before, "load_average_after": load_after},

@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 
 from shapecorr.errors import ConfigError, CorrespondenceError, NumericalError
 from shapecorr.eval.metrics import ground_truth_indices
+from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
 from shapecorr.matching.result import MatchResult
 
 #: Descriptors DescriptorNN can use (computed by the data pipeline, shapecorr.data.operators).
@@ -60,64 +61,6 @@ class IdentityGT:
         p2p = target_of_ref[nearest]
         p2p[uniq_x] = target_of_ref  # exact on the reference vertices even with coincident positions
         return MatchResult(p2p=torch.from_numpy(p2p.astype(np.int64)).to(x.shape.verts.device))
-
-
-def nearest_neighbors(source: torch.Tensor, target: torch.Tensor, chunk_rows: int = NN_CHUNK_ROWS) -> torch.Tensor:
-    """Index of the nearest target row (Euclidean) for each source row, by chunked brute force.
-
-    Parameters
-    ----------
-    source : (n, c) float tensor
-    target : (m, c) float tensor
-    chunk_rows : int
-        Source rows per chunk (memory ~ chunk_rows * m).
-
-    Returns
-    -------
-    (n,) int64 tensor on the device of ``source``
-    """
-    return nearest_neighbors_both_ways(source, target, chunk_rows, both=False)[0]
-
-
-def nearest_neighbors_both_ways(
-    a: torch.Tensor, b: torch.Tensor, chunk_rows: int = NN_CHUNK_ROWS, both: bool = True
-) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Nearest neighbours a -> b and b -> a from one pass over the squared distance matrix.
-
-    The (n, m) matrix ``|a|^2 + |b|^2 - 2 a b^T`` is built ``chunk_rows`` rows at a time (one matrix product per
-    chunk, as torch.cdist does); each chunk gives the row minima (a -> b) and updates running column minima
-    (b -> a), so both directions cost one product instead of two. Ties go to the lowest index, as argmin.
-
-    Parameters
-    ----------
-    a : (n, c) float tensor
-    b : (m, c) float tensor
-    chunk_rows : int
-    both : bool
-        Also compute b -> a.
-
-    Returns
-    -------
-    nn_ab : (n,) int64 tensor
-    nn_ba : (m,) int64 tensor, or None when ``both`` is False
-    """
-    if a.shape[1] != b.shape[1]:
-        raise ConfigError(f"descriptor sizes differ: {a.shape[1]} vs {b.shape[1]} channels")
-    sq_b = (b * b).sum(1)
-    nn_ab = torch.empty(a.shape[0], dtype=torch.int64, device=a.device)
-    best = torch.full((b.shape[0],), float("inf"), dtype=a.dtype, device=a.device) if both else None
-    nn_ba = torch.zeros(b.shape[0], dtype=torch.int64, device=a.device) if both else None
-    for start in range(0, a.shape[0], chunk_rows):
-        block = a[start : start + chunk_rows]
-        # squared distances of the chunk; the |a|^2 term only matters for the column direction
-        dist = torch.addmm(sq_b[None, :] + (block * block).sum(1)[:, None], block, b.T, alpha=-2.0)
-        nn_ab[start : start + chunk_rows] = dist.argmin(dim=1)
-        if both:
-            value, index = dist.min(dim=0)
-            better = value < best
-            best = torch.where(better, value, best)
-            nn_ba = torch.where(better, index + start, nn_ba)
-    return nn_ab, nn_ba
 
 
 class DescriptorNN:
@@ -181,7 +124,7 @@ class DescriptorNN:
     def match(self, x, y) -> MatchResult:
         """Nearest-neighbour maps x -> y and y -> x in descriptor space."""
         fx, fy = self._transform(self._features(x), self._features(y))
-        p2p, p2p_inv = nearest_neighbors_both_ways(fx, fy, self.chunk_rows)
+        p2p, p2p_inv = bidirectional_nearest_neighbors(fx, fy, backend="brute", block_size=self.chunk_rows, exact=False)
         return MatchResult(p2p=p2p, p2p_inv=p2p_inv)
 
 

@@ -14,9 +14,8 @@ from shapecorr.matching.baselines import (
     DescriptorNN,
     IdentityGT,
     PrecomputedMaps,
-    nearest_neighbors,
-    nearest_neighbors_both_ways,
 )
+from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
 from shapecorr.matching.result import Matcher, MatchResult
 
 
@@ -86,13 +85,13 @@ def test_nearest_neighbors_matches_brute_force():
     g = torch.Generator().manual_seed(0)
     a, b = torch.randn(300, 5, generator=g, dtype=torch.float64), torch.randn(200, 5, generator=g, dtype=torch.float64)
     dist = torch.cdist(a, b)
-    assert torch.equal(nearest_neighbors(a, b, chunk_rows=37), dist.argmin(dim=1))
+    # DescriptorNN's search: the chunked brute force in the input dtype
     for chunk in (1, 37, 1000):
-        ab, ba = nearest_neighbors_both_ways(a, b, chunk_rows=chunk)
+        ab, ba = bidirectional_nearest_neighbors(a, b, backend="brute", block_size=chunk, exact=False)
         assert torch.equal(ab, dist.argmin(dim=1)) and torch.equal(ba, dist.argmin(dim=0))
     # ties go to the lowest index, across chunks too
     dup = torch.cat([b[:1], b[:1]])
-    assert nearest_neighbors_both_ways(dup, b[:3], chunk_rows=1)[1][0] == 0
+    assert bidirectional_nearest_neighbors(dup, b[:3], backend="brute", block_size=1, exact=False)[1][0] == 0
 
 
 @pytest.mark.parametrize("normalize", ["none", "l2", "standardize"])
