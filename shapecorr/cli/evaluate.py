@@ -1,10 +1,13 @@
-"""``evaluate.py``: evaluate any matcher — learned, axiomatic, a baseline, or maps computed elsewhere.
+"""``evaluate.py``: evaluate any matcher — learned, axiomatic, a baseline, or maps computed elsewhere — or
+transfer a pose with an interpolating one.
 
     python evaluate.py model=descriptor_nn data=faust_r data.root=DIR pairs=test output_dir=OUT
-    python evaluate.py model=<learned> ckpt_path=CKPT data=... output_dir=OUT
+    python evaluate.py model=<learned> ckpt_path=CKPT data=... output_dir=OUT [interp_times=[0,0.5,1,1.5]]
     python evaluate.py maps_dir=DIR [maps_one_based=true maps_extension=map] data=... output_dir=OUT
+    python evaluate.py model=<interpolating> [ckpt_path=CKPT] task=pose_transfer source=A.off target=B.off \
+        [output_dir=OUT] [interp_times=[...]]
 
-Options: ``configs/evaluate.yaml``. Steps:
+Options: ``configs/evaluate.yaml``. Steps of ``task=match`` (the default):
 
 1. Build the matcher (``hydra.utils.instantiate(cfg.model)``, or ``load_from_checkpoint(ckpt_path)`` of the
    model's class, or :class:`~shapecorr.matching.baselines.PrecomputedMaps` for ``maps_dir``) and the data
@@ -14,10 +17,29 @@ Options: ``configs/evaluate.yaml``. Steps:
 4. Rank 0 merges the records of all pairs into ``metrics.json``, ``per_pair.csv``, ``pck.png`` and renders
    ``examples/<x>__<y>.png``.
 
+Interpolating matchers (those with an ``interpolate(x, y, times)`` method, e.g. NeuroMorph or
+``model=linear_blend``) are called at ``interp_times`` (default ``[0, 0.25, 0.5, 0.75, 1]``; values > 1
+extrapolate; ``null`` = the matcher's own default frames). Each pair's frames are written (``write_interp``)
+as ``OUT/interp/<x>__<y>/t_XX.ply`` (XX = index into ``interp_times``, in x's input units) with
+``times.txt`` (line XX = time of t_XX). The metrics compare the frame at t = 1 with y (Chamfer distance,
+fractions of sqrt(area(y))) and average the conformal distortion along the sequence over the frames with
+0 <= t <= 1; when 1 is not among ``interp_times`` it is evaluated as well for the metrics but not written.
+``metrics.json`` then holds ``mean_deformation_conformal_distortion``, ``mean_chamfer``,
+``mean_chamfer_one_sided`` and ``mean_volume_change`` (absent for other matchers; ``mean_conformal_distortion``
+is the distortion of the map, for every matcher), ``per_pair.csv`` the per-pair values, and the printed
+summary the first two.
+
+``task=pose_transfer`` (:mod:`shapecorr.cli.pose_transfer`) runs an interpolating matcher on two mesh files,
+``source=A`` and ``target=B`` (.off/.ply/.obj, normalized like the data config's shapes, operators cached),
+and writes ``OUT/pose_transfer/<A>__<B>/``: ``deformed.ply`` (the frame at t = 1 in A's input units: A's
+identity in B's pose), the frames ``t_XX.ply`` + ``times.txt`` at ``interp_times`` (``write_interp``) and the
+map A -> B ``map.txt`` (zero-based, one line per vertex of A; ``write_maps``); it prints the paths.
+
 Resumption: ``OUT/run.json`` records what is evaluated (matcher, checkpoint or maps folder, dataset, split,
-geodesics); a re-run with the same ``output_dir`` skips the pairs already done and refuses to mix results of a
-different run. DDP: launch with ``torchrun --nproc_per_node=N evaluate.py ...``; every rank evaluates every
-N-th pair into the same folder (a shared file system), then rank 0 writes the reports.
+geodesics, and the interpolation times of interpolating matchers); a re-run with the same ``output_dir``
+skips the pairs already done and refuses to mix results of a different run. DDP: launch with
+``torchrun --nproc_per_node=N evaluate.py ...``; every rank evaluates every N-th pair into the same folder
+(a shared file system), then rank 0 writes the reports.
 """
 
 from __future__ import annotations
@@ -42,13 +64,15 @@ from shapecorr.data.cache import atomic_open
 from shapecorr.data.datasets import PairDataset, pair_name
 from shapecorr.errors import ConfigError
 from shapecorr.eval import protocol, reports
-from shapecorr.eval.export import map_paths
+from shapecorr.eval.export import INTERP_DIR, map_paths
 from shapecorr.matching.baselines import PrecomputedMaps
 from shapecorr.matching.result import Matcher
 from shapecorr.viz.render import render_correspondence
 
 RUN_FILE = "run.json"
 EXAMPLES_DIR = "examples"
+#: Values of the ``task`` option: evaluate pairs of a dataset, or transfer a pose between two mesh files.
+TASKS = ("match", "pose_transfer")
 
 
 def resolve_device(name: str) -> torch.device:
@@ -140,8 +164,8 @@ def _check_run_file(out_dir: Path, fingerprint: dict[str, Any], resume: bool) ->
             )
         return
     if not resume:
-        shutil.rmtree(out_dir / protocol.RECORDS_DIR, ignore_errors=True)
-        shutil.rmtree(out_dir / EXAMPLES_DIR, ignore_errors=True)
+        for sub in (protocol.RECORDS_DIR, EXAMPLES_DIR, INTERP_DIR):
+            shutil.rmtree(out_dir / sub, ignore_errors=True)
     out_dir.mkdir(parents=True, exist_ok=True)
     with atomic_open(run_file) as fh:
         fh.write((json.dumps(fingerprint, indent=1, sort_keys=True) + "\n").encode())
@@ -179,10 +203,36 @@ def render_examples(out_dir: Path, shapes, pairs, records, n_examples: int, view
     return written
 
 
+def interp_times_option(cfg: DictConfig) -> tuple[float, ...] | None:
+    """``cfg.interp_times`` checked (finite, strictly increasing), or None when it is null."""
+    value = cfg.get("interp_times")
+    if value is None:
+        return None
+    if not OmegaConf.is_list(value):
+        raise ConfigError(f"interp_times must be a list of times, e.g. interp_times=[0,0.5,1,1.5], or null; got {value!r}")
+    return protocol.check_interp_times(OmegaConf.to_container(value, resolve=True))
+
+
+def task_option(cfg: DictConfig) -> str:
+    """``cfg.task``, checked against :data:`TASKS`."""
+    task = str(cfg.get("task") or "match")
+    if task not in TASKS:
+        raise ConfigError(f"task must be one of {TASKS}, got {task!r}")
+    return task
+
+
 @exit_on_user_error
 def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
-    """Run the evaluation described by ``cfg`` (configs/evaluate.yaml); returns metrics on rank 0, else None."""
+    """Run the evaluation described by ``cfg`` (configs/evaluate.yaml); returns metrics on rank 0, else None.
+
+    With ``task=pose_transfer`` runs :func:`shapecorr.cli.pose_transfer.run_pose_transfer` instead and returns
+    its summary (the written paths).
+    """
     try:
+        if task_option(cfg) == "pose_transfer":
+            from shapecorr.cli.pose_transfer import run_pose_transfer
+
+            return run_pose_transfer(cfg)
         out_dir = Path(str(cfg.output_dir))
         device = resolve_device(str(cfg.device))
         rank, world = _init_distributed(device)
@@ -193,7 +243,8 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
             geodesics=str(cfg.geodesics),
             conformal_clamp=float(cfg.conformal_clamp),
             write_maps=bool(cfg.write_maps),
-            write_sequences=bool(cfg.write_sequences),
+            write_interp=bool(cfg.write_interp),
+            interp_times=interp_times_option(cfg),
             device=str(device),
         )
     except OmegaConfBaseException as err:
@@ -219,6 +270,8 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
         "geodesics": settings.geodesics,
         "normalization": repr(shapes.normalization),
     }
+    if protocol.interpolates(matcher):
+        fingerprint["interp_times"] = None if settings.interp_times is None else list(settings.interp_times)
     if rank == 0:
         _check_run_file(out_dir, fingerprint, bool(cfg.resume))
         # Fill the cache of every shape of the split once, in parallel, before any pair is evaluated.
@@ -259,12 +312,6 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     reports.write_per_pair_csv(out_dir / "per_pair.csv", records)
     reports.write_pck_png(out_dir / "pck.png", result, label=fingerprint["matcher"].rsplit(".", 1)[-1])
     render_examples(out_dir, shapes, pairs, records, int(cfg.n_examples), view)
-    summary = (
-        f"{result['n_pairs']} pairs: mean geodesic error {result['mean_geodesic_error']:.4f} "
-        f"(x100: {100 * result['mean_geodesic_error']:.2f}), PCK AUC {result['pck_auc']:.3f}, "
-        f"{result['seconds_per_pair']:.3f} s/pair -> {out_dir}"
-    )
-    if "mean_geodesic_error_sym" in result:
-        summary += f"; vs mirrored ground truth {result['mean_geodesic_error_sym']:.4f}"
+    summary = reports.summary(result, out_dir)
     print(summary)
     return result

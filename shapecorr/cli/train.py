@@ -22,6 +22,7 @@ import pytorch_lightning as pl
 from omegaconf import DictConfig
 from omegaconf.errors import OmegaConfBaseException
 from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
+from pytorch_lightning.utilities.exceptions import MisconfigurationException
 
 from shapecorr.cli.common import exit_on_user_error, user_config_error
 from shapecorr.errors import ConfigError
@@ -38,25 +39,53 @@ def _instantiate(node: DictConfig, what: str, **kwargs) -> Any:
 
         if isinstance(cause, ShapeCorrError):
             raise cause from None
+        if isinstance(cause, MisconfigurationException):
+            raise ConfigError(f"invalid {what} options: {cause}") from None
         raise ConfigError(f"cannot build the {what}: {err}") from None
 
 
-def build_callbacks(cfg: DictConfig, out_dir: Path) -> list[pl.Callback]:
-    """ModelCheckpoint (last + periodic) and, with a logger, the learning-rate monitor."""
+def checkpoint_callback(cfg: DictConfig, out_dir: Path) -> ModelCheckpoint:
+    """The ModelCheckpoint of ``cfg.checkpoint``: ``last.ckpt`` plus periodic ones.
+
+    ``every_n_train_steps`` (mid-epoch checkpoints every N optimizer steps) replaces ``every_n_epochs`` when both
+    are set (Lightning accepts only one of them); ``0`` or ``null`` for both keeps only ``last.ckpt``.
+
+    Raises
+    ------
+    ConfigError
+        Options Lightning rejects (e.g. a negative interval), with its message.
+    """
     ck = cfg.checkpoint
-    callbacks: list[pl.Callback] = [
-        ModelCheckpoint(
+    every_n_steps = ck.get("every_n_train_steps")
+    every_n_epochs = None if every_n_steps else ck.get("every_n_epochs")
+    try:
+        return ModelCheckpoint(
             dirpath=str(out_dir / CHECKPOINT_DIR),
             filename="epoch{epoch:03d}-step{step:06d}",
             auto_insert_metric_name=False,
             save_last=bool(ck.save_last),
             save_top_k=-1,  # keep every periodic checkpoint
-            every_n_epochs=ck.every_n_epochs,
-            every_n_train_steps=ck.every_n_train_steps,
+            every_n_epochs=every_n_epochs,
+            every_n_train_steps=every_n_steps,
         )
-    ]
+    except (MisconfigurationException, ValueError, TypeError) as err:
+        raise ConfigError(f"invalid checkpoint options (checkpoint.every_n_train_steps={every_n_steps}, "
+                          f"checkpoint.every_n_epochs={ck.get('every_n_epochs')}): {err}") from None
+
+
+def build_callbacks(cfg: DictConfig, out_dir: Path) -> list[pl.Callback]:
+    """ModelCheckpoint (last + periodic), with a logger the learning-rate monitor, then ``cfg.callbacks``."""
+    callbacks: list[pl.Callback] = [checkpoint_callback(cfg, out_dir)]
     if cfg.get("logger"):
         callbacks.append(LearningRateMonitor(logging_interval="step"))
+    # Callbacks of the model / experiment configs (e.g. NeuroMorph's epoch schedules), by name; null disables one.
+    for name, node in (cfg.get("callbacks") or {}).items():
+        if node is None:
+            continue
+        callback = _instantiate(node, f"callback {name!r}")
+        if not isinstance(callback, pl.Callback):
+            raise ConfigError(f"callbacks.{name} is not a Lightning callback (got {type(callback).__name__})")
+        callbacks.append(callback)
     return callbacks
 
 
@@ -85,12 +114,18 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     required = dict(getattr(model, "required_operators", {}) or {})
     if required:
         dm.with_operators(**required)
-    trainer.fit(model, datamodule=dm, ckpt_path=str(ckpt_path) if ckpt_path else None)
+    try:
+        trainer.fit(model, datamodule=dm, ckpt_path=str(ckpt_path) if ckpt_path else None)
+    except MisconfigurationException as err:  # options Lightning only checks once fitting starts
+        raise ConfigError(f"invalid trainer or callback options: {err}") from None
     checkpoint = trainer.checkpoint_callback.last_model_path if trainer.checkpoint_callback else None
     result: dict[str, Any] = {"checkpoint": checkpoint or None, "test_error": None, "test_pairs": 0,
                               "output_dir": str(out_dir)}
     if cfg.test:
-        trainer.test(model, datamodule=dm, verbose=False)
+        try:
+            trainer.test(model, datamodule=dm, verbose=False)
+        except MisconfigurationException as err:
+            raise ConfigError(f"invalid trainer or callback options: {err}") from None
         errors = getattr(model, "_eval_errors", {}).get("test", [])
         if trainer.is_global_zero and errors:
             mean = float(np.mean(np.concatenate(errors)))

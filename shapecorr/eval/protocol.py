@@ -9,8 +9,19 @@ against it; that number is reported separately and never mixed into the main err
 Per pair, under the output folder::
 
     maps/<x>__<y>.txt, maps/<x>__<y>.npy     the map (see :mod:`shapecorr.eval.export`)
+    interp/<x>__<y>/t_XX.ply, times.txt      interpolation frames, for matchers returning a deformation
     pairs/<x>__<y>.npz                       per-reference-point errors (``errors``, ``errors_sym``)
     pairs/<x>__<y>.json                      the :class:`PairRecord`, written last
+
+Interpolating matchers (issue 6): a matcher *interpolates* when it has a method
+``interpolate(x, y, times: (T,) float tensor) -> MatchResult`` whose ``deformation (T, n_x, 3)`` holds x's
+vertices at those times (t = 0: x, t = 1: x deformed onto y, t > 1: an extrapolation); its ``match(x, y)``
+returns the same maps and its default frames. With ``EvalSettings.interp_times`` set, :func:`run_matcher`
+calls ``interpolate`` at those times, adding t = 1 when it is not among them (the metrics need that frame;
+only the requested frames are written). Without ``interp_times``, or for a matcher that only has ``match``,
+the frames of ``match`` are used. The deformation metrics (:func:`score_deformation`) compare the frame at
+t = 1 with y and average the conformal distortion over the frames with 0 <= t <= 1 (extrapolated frames are
+written, not scored).
 
 A pair is *done* when its record exists (every file is written atomically and the record last), so an
 interrupted run resumes with the pairs that are missing.
@@ -29,7 +40,7 @@ import os
 import time
 from collections import OrderedDict
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -42,6 +53,7 @@ from shapecorr.data.datasets import pair_name
 from shapecorr.errors import ConfigError, CorrespondenceError, InvalidMeshError
 from shapecorr.eval import metrics
 from shapecorr.eval.export import write_map_files, write_sequence
+from shapecorr.matching.result import MatchResult
 
 RECORDS_DIR = "pairs"
 #: Number of ShapeSamples (eigenbasis + descriptors) kept in memory per process (~5 MB each at 5k vertices).
@@ -49,6 +61,10 @@ DEFAULT_SAMPLE_CACHE = 32
 #: Number of geodesic matrices kept in memory per process (100 MB each at 5k vertices).
 DEFAULT_GEODESIC_CACHE = 2
 GEODESIC_METHODS = ("heat", "exact")
+#: The time of the frame compared with the target (x fully deformed onto y).
+UNIT_TIME = 1.0
+#: Two frame times closer than this are the same time (float32 tensors carry times to ~1e-7).
+TIME_ATOL = 1e-6
 START_METHODS = ("spawn", "forkserver", "fork")
 
 
@@ -73,9 +89,10 @@ class PairRecord:
     mean_error_sym : float or None
         Mean error against the mirrored ground truth, when the target has one.
     chamfer, chamfer_one_sided, volume_change, deformation_conformal_distortion : float or None
-        For interpolating matchers: two-sided / one-sided Chamfer distance between the last frame and the
-        target (fractions of sqrt(area(target))), relative volume change of the last frame (closed meshes
-        only), and the conformal distortion of the frames averaged over time.
+        For matchers returning a deformation (interpolating matchers), from :func:`score_deformation`:
+        two-sided / one-sided Chamfer distance between the frame at t = 1 and the target (fractions of
+        sqrt(area(target))), relative volume change of that frame (closed meshes only), and the conformal
+        distortion of the frames with 0 <= t <= 1 averaged over those frames. None otherwise.
     """
 
     source: str
@@ -110,8 +127,12 @@ class EvalSettings:
         Per-triangle clamp of the conformal distortion.
     write_maps : bool
         Write ``maps/<x>__<y>.txt`` and ``.npy``.
-    write_sequences : bool
-        Write interpolation frames as PLY files (matchers returning a deformation).
+    write_interp : bool
+        Write the interpolation frames of matchers returning a deformation as
+        ``interp/<x>__<y>/t_XX.ply`` + ``times.txt`` (in x's input units).
+    interp_times : tuple of float, optional
+        Times at which interpolating matchers are evaluated and their frames written (finite, strictly
+        increasing, t > 1 allowed); None: the frames ``match`` returns.
     device : str
         Device the pair is moved to before ``match`` (``cpu``, ``cuda:0``, ...).
     sample_cache, geodesic_cache : int
@@ -121,7 +142,8 @@ class EvalSettings:
     geodesics: str = "heat"
     conformal_clamp: float = metrics.CONFORMAL_DISTORTION_CLAMP
     write_maps: bool = True
-    write_sequences: bool = True
+    write_interp: bool = True
+    interp_times: tuple[float, ...] | None = None
     device: str = "cpu"
     sample_cache: int = DEFAULT_SAMPLE_CACHE
     geodesic_cache: int = DEFAULT_GEODESIC_CACHE
@@ -131,6 +153,8 @@ class EvalSettings:
             raise ConfigError(f"geodesics must be one of {GEODESIC_METHODS}, got {self.geodesics!r}")
         if self.sample_cache < 1 or self.geodesic_cache < 1:
             raise ConfigError("sample_cache and geodesic_cache must be >= 1")
+        if self.interp_times is not None:
+            object.__setattr__(self, "interp_times", check_interp_times(self.interp_times))
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -176,27 +200,59 @@ def score_map(p2p, x, y, dist_y: np.ndarray, clamp: float = metrics.CONFORMAL_DI
     return {"errors": errors, "errors_sym": errors_sym, "conformal_distortion": distortion}
 
 
-def score_deformation(frames, x, y, clamp: float = metrics.CONFORMAL_DISTORTION_CLAMP) -> dict[str, float | None]:
+def unit_time_index(times, atol: float = TIME_ATOL) -> int | None:
+    """Index of the frame at t = 1 in ``times (T,)``, or None when there is none."""
+    times = metrics.as_numpy(times, np.float64).reshape(-1)
+    hits = np.flatnonzero(np.abs(times - UNIT_TIME) <= atol)
+    return int(hits[0]) if hits.size else None
+
+
+def score_deformation(
+    frames, x, y, clamp: float = metrics.CONFORMAL_DISTORTION_CLAMP, times=None
+) -> dict[str, float | None]:
     """Metrics of an interpolation of x towards y (methods-digest §5.7, scale-invariant where it matters).
 
     Parameters
     ----------
     frames : (T, n_x, 3) float
-        Positions of x's vertices over time; the last frame is compared with y.
+        Positions of x's vertices over time (normalized units).
     x, y : ShapeSample
+    clamp : float
+        Per-triangle clamp of the conformal distortion.
+    times : (T,) float, optional
+        Time of each frame. Given: the frame at t = 1 is compared with y and the conformal distortion is
+        averaged over the frames with 0 <= t <= 1 (extrapolated frames are not scored). None: the last
+        frame is compared with y and every frame is averaged.
 
     Returns
     -------
-    dict with ``chamfer`` and ``chamfer_one_sided`` (last frame vs y, fractions of sqrt(area(y))),
-    ``volume_change`` (relative, last frame vs x; None when x is not a closed mesh) and
-    ``deformation_conformal_distortion`` (mean over frames).
+    dict with ``chamfer`` and ``chamfer_one_sided`` (frame at t = 1 vs y, fractions of sqrt(area(y))),
+    ``volume_change`` (relative, that frame vs x; None when x is not a closed mesh) and
+    ``deformation_conformal_distortion`` (mean over the scored frames).
+
+    Raises
+    ------
+    CorrespondenceError
+        ``times`` does not match the frames or has no frame at t = 1.
     """
-    frames = np.asarray(frames.detach().cpu().numpy() if hasattr(frames, "detach") else frames, dtype=np.float64)
-    verts_x = x.shape.verts.detach().cpu().numpy().astype(np.float64)
-    faces_x = x.shape.faces.detach().cpu().numpy()
-    verts_y = y.shape.verts.detach().cpu().numpy().astype(np.float64)
-    sqrt_area_y = float(np.sqrt(metrics.surface_area(verts_y, y.shape.faces.detach().cpu().numpy())))
-    last = frames[-1]
+    frames = metrics.as_numpy(frames, np.float64)
+    if times is None:
+        unit, scored = frames.shape[0] - 1, np.ones(frames.shape[0], dtype=bool)
+    else:
+        times = metrics.as_numpy(times, np.float64).reshape(-1)
+        if times.shape[0] != frames.shape[0]:
+            raise CorrespondenceError(f"{frames.shape[0]} frames but {times.shape[0]} times")
+        unit = unit_time_index(times)
+        if unit is None:
+            raise CorrespondenceError(
+                f"the interpolation of {pair_name(x.name, y.name)} has no frame at t = 1 (times {times.tolist()})"
+            )
+        scored = (times >= -TIME_ATOL) & (times <= UNIT_TIME + TIME_ATOL)
+    verts_x = metrics.as_numpy(x.shape.verts, np.float64)
+    faces_x = metrics.as_numpy(x.shape.faces)
+    verts_y = metrics.as_numpy(y.shape.verts, np.float64)
+    sqrt_area_y = float(np.sqrt(metrics.surface_area(verts_y, metrics.as_numpy(y.shape.faces))))
+    last = frames[unit]
     try:
         volume = metrics.relative_volume_change(verts_x, faces_x, last)
     except InvalidMeshError:
@@ -206,9 +262,141 @@ def score_deformation(frames, x, y, clamp: float = metrics.CONFORMAL_DISTORTION_
         "chamfer_one_sided": metrics.chamfer_distance(last, verts_y, one_sided=True) / sqrt_area_y,
         "volume_change": volume,
         "deformation_conformal_distortion": float(
-            np.mean([metrics.mean_conformal_distortion(verts_x, faces_x, f, clamp) for f in frames])
+            np.mean([metrics.mean_conformal_distortion(verts_x, faces_x, f, clamp) for f in frames[scored]])
         ),
     }
+
+
+# --------------------------------------------------------------------------------------------------------
+# Running a matcher on one pair
+# --------------------------------------------------------------------------------------------------------
+def interpolates(matcher) -> bool:
+    """True when ``matcher`` has an ``interpolate(x, y, times)`` method (see the module docstring)."""
+    return callable(getattr(matcher, "interpolate", None))
+
+
+def check_interp_times(times) -> tuple[float, ...]:
+    """Validate interpolation times: a non-empty, strictly increasing list of finite numbers.
+
+    Returns
+    -------
+    tuple of float
+
+    Raises
+    ------
+    ConfigError
+    """
+    try:
+        values = tuple(float(t) for t in (times.tolist() if hasattr(times, "tolist") else times))
+    except (TypeError, ValueError):
+        raise ConfigError(f"interp_times must be a list of numbers, e.g. [0, 0.5, 1, 1.5]; got {times!r}") from None
+    if not values:
+        raise ConfigError("interp_times is empty; give a list of times, e.g. [0, 0.5, 1], or null")
+    if not all(np.isfinite(values)):
+        raise ConfigError(f"interp_times must be finite, got {list(values)}")
+    if any(b - a <= TIME_ATOL for a, b in zip(values, values[1:])):
+        raise ConfigError(f"interp_times must be strictly increasing, got {list(values)}")
+    return values
+
+
+def with_unit_time(times) -> tuple[tuple[float, ...], np.ndarray]:
+    """``times`` plus t = 1 when it is missing.
+
+    Returns
+    -------
+    all_times : tuple of float
+        Sorted, with a frame at t = 1.
+    requested : (T,) int64
+        Position of each of the given times in ``all_times``.
+    """
+    times = check_interp_times(times)
+    if unit_time_index(times) is not None:
+        return times, np.arange(len(times))
+    all_times = tuple(sorted(times + (UNIT_TIME,)))
+    unit = all_times.index(UNIT_TIME)
+    return all_times, np.array([k if k < unit else k + 1 for k in range(len(times))], dtype=np.int64)
+
+
+def _check_result(result, matcher, method: str) -> MatchResult:
+    if result is None or not hasattr(result, "p2p"):
+        raise ConfigError(f"{type(matcher).__name__}.{method} returned {type(result).__name__}, not a MatchResult")
+    return result
+
+
+@dataclass(frozen=True, eq=False)
+class MatcherRun:
+    """The result of :func:`run_matcher` and which of its frames to export.
+
+    Attributes
+    ----------
+    result : MatchResult
+        Maps and, for interpolating matchers, every computed frame (t = 1 included).
+    export : (K,) int64 or None
+        Indices of the frames to write (the requested times); None: every frame of ``result``.
+    export_times : (K,) float64 or None
+        Their times exactly as requested (written to ``times.txt``); None: ``result.times``.
+    """
+
+    result: MatchResult
+    export: np.ndarray | None = None
+    export_times: np.ndarray | None = None
+
+    def sequence(self) -> tuple[torch.Tensor, np.ndarray] | None:
+        """``(frames (K, n_x, 3), times (K,) float64)`` to write, or None without a deformation."""
+        r = self.result
+        if r.deformation is None:
+            return None
+        if self.export is None:
+            # str() of a numpy scalar is the shortest decimal of its own precision: a float32 0.2 stays "0.2"
+            return r.deformation, np.array([float(str(t)) for t in metrics.as_numpy(r.times).reshape(-1)])
+        index = torch.as_tensor(self.export, device=r.deformation.device)
+        return r.deformation.index_select(0, index), np.asarray(self.export_times, dtype=np.float64)
+
+
+def run_matcher(matcher, x, y, interp_times=None) -> MatcherRun:
+    """Run a matcher on the pair (x, y), interpolating at ``interp_times`` when it can.
+
+    Parameters
+    ----------
+    matcher : Matcher
+    x, y : ShapeSample
+        On the matcher's device.
+    interp_times : sequence of float, optional
+        Times of the frames wanted from an interpolating matcher (see the module docstring).
+
+    Returns
+    -------
+    MatcherRun
+        Its ``result`` holds a frame at t = 1 whenever the matcher interpolates.
+
+    Raises
+    ------
+    ConfigError
+        The matcher returned something other than a MatchResult.
+    CorrespondenceError
+        ``interpolate`` returned frames at other times than requested.
+    """
+    if interp_times is not None and interpolates(matcher):
+        return _interpolate(matcher, x, y, interp_times)
+    result = _check_result(matcher.match(x, y), matcher, "match")
+    if result.deformation is not None and interpolates(matcher) and unit_time_index(result.times) is None:
+        return _interpolate(matcher, x, y, metrics.as_numpy(result.times, np.float64).tolist())
+    return MatcherRun(result)
+
+
+def _interpolate(matcher, x, y, requested) -> MatcherRun:
+    all_times, export = with_unit_time(requested)
+    times = torch.tensor(all_times, dtype=torch.float32, device=x.verts.device)
+    result = _check_result(matcher.interpolate(x, y, times), matcher, "interpolate")
+    got = None if result.times is None else metrics.as_numpy(result.times, np.float64).reshape(-1)
+    if result.deformation is None or got is None or got.shape != times.shape or not np.allclose(
+        got, all_times, rtol=0.0, atol=TIME_ATOL
+    ):
+        raise CorrespondenceError(
+            f"{type(matcher).__name__}.interpolate of {pair_name(x.name, y.name)} was asked for frames at "
+            f"{list(all_times)} but returned {'no deformation' if result.deformation is None else got.tolist()}"
+        )
+    return MatcherRun(result, export, np.asarray(check_interp_times(requested), dtype=np.float64))
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -306,19 +494,18 @@ class PairEvaluator:
         t0 = time.perf_counter()
         xd, yd = x.to(self.device), y.to(self.device)
         with torch.no_grad():
-            result = self.matcher.match(xd, yd)
+            run = run_matcher(self.matcher, xd, yd, self.settings.interp_times)
         _synchronize(self.device)
         seconds = time.perf_counter() - t0
-        if result is None or not hasattr(result, "p2p"):
-            kind = type(result).__name__
-            raise ConfigError(f"{type(self.matcher).__name__}.match returned {kind}, not a MatchResult")
-        result = result.cpu().validate(x.shape.n_verts, y.shape.n_verts, name)
+        result = run.result.cpu().validate(x.shape.n_verts, y.shape.n_verts, name)
+        run = replace(run, result=result)
         scores = score_map(result.p2p, x, y, self.geodesics(j), self.settings.conformal_clamp)
         extra: dict[str, float | None] = {}
         if result.deformation is not None:
-            extra = score_deformation(result.deformation, x, y, self.settings.conformal_clamp)
-            if self.settings.write_sequences:
-                write_sequence(self.out_dir, x.name, y.name, result.deformation, x.shape.faces, shape=x.shape)
+            extra = score_deformation(result.deformation, x, y, self.settings.conformal_clamp, times=result.times)
+            if self.settings.write_interp:
+                frames, times = run.sequence()
+                write_sequence(self.out_dir, x.name, y.name, frames, x.shape.faces, times, shape=x.shape)
         if self.settings.write_maps:
             write_map_files(self.out_dir, x.name, y.name, result.p2p)
         errors, errors_sym = scores["errors"], scores["errors_sym"]

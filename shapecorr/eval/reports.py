@@ -11,7 +11,14 @@ Aggregation conventions (documented in ``metrics.json`` itself under ``"conventi
 * ``seconds_per_pair``: mean wall time of the matcher per pair; ``eval_seconds_per_pair``: the evaluation's
   own overhead per pair (loading, scoring, writing);
 * ``peak_memory_mb``: the largest resident set size of this process and of its worker processes
-  (``resource.getrusage``), and ``peak_cuda_memory_mb`` when a GPU was used.
+  (``resource.getrusage``), and ``peak_cuda_memory_mb`` when a GPU was used;
+* ``mean_conformal_distortion``: the conformal distortion of the *map* (every matcher), mean over pairs;
+* only for matchers returning a deformation (interpolating matchers, issue 6), means over the pairs that have
+  one (``n_pairs_interpolated``): ``mean_deformation_conformal_distortion`` (the conformal distortion along
+  the sequence: per pair the mean over the frames with 0 <= t <= 1, then the mean over pairs; same clamp),
+  ``mean_chamfer`` / ``mean_chamfer_one_sided`` (the frame at t = 1 against the target, fractions of
+  sqrt(area of the target)) and ``mean_volume_change`` (closed meshes only). These keys are absent for
+  matchers without a deformation.
 """
 
 from __future__ import annotations
@@ -39,6 +46,8 @@ from shapecorr.viz.render import save_figure
 PER_PAIR_COLUMNS = ["source", "target", "mean_error", "seconds"] + [
     f.name for f in fields(PairRecord) if f.name not in ("source", "target", "mean_error", "seconds")
 ]
+#: Per-pair deformation metrics averaged into ``mean_<name>`` when present (interpolating matchers).
+DEFORMATION_ATTRIBUTES = ("chamfer", "chamfer_one_sided", "volume_change", "deformation_conformal_distortion")
 #: Size of the PCK figure in inches and its resolution.
 PCK_FIGSIZE = (5.0, 4.0)
 PCK_DPI = 120
@@ -119,19 +128,53 @@ def aggregate(
         out["pck_auc_sym"] = metrics.pck_auc(ts, fs)
         out["n_pairs_sym"] = len(sym)
         out["pck_sym"] = {"thresholds": ts.tolist(), "fractions": fs.tolist()}
-    for attr in ("chamfer", "chamfer_one_sided", "volume_change", "deformation_conformal_distortion"):
+    for attr in DEFORMATION_ATTRIBUTES:
         value = _mean_of(records, attr)
         if value is not None:
             out[f"mean_{attr}"] = value
+    interpolated = sum(r.deformation_conformal_distortion is not None for r in records)
+    if interpolated:
+        out["n_pairs_interpolated"] = interpolated
     out["pck"] = {"thresholds": t.tolist(), "fractions": frac.tolist()}
     out["conventions"] = {
         "errors": "geodesic distance on the target / sqrt(area of the target); x100 for paper numbers",
         "mean_geodesic_error": "mean over pairs of the per-pair mean",
         "median_geodesic_error": "median over all reference points of all pairs",
         "pck_auc": "trapezoid area under the pooled PCK curve divided by the threshold range",
-        "mean_conformal_distortion": "area-weighted (K - 1/K)^2 per source triangle, clamped, mean over pairs",
+        "mean_conformal_distortion": "of the map: area-weighted (K - 1/K)^2 per source triangle with its corners "
+        "moved to their images, clamped, mean over pairs",
     }
+    if interpolated:
+        out["conventions"].update(
+            {
+                "mean_deformation_conformal_distortion": "along the interpolation: the same per-triangle measure "
+                "between x and each frame with 0 <= t <= 1, mean over those frames, then over pairs",
+                "mean_chamfer": "two-sided Chamfer distance between the frame at t = 1 and the target "
+                "(mean nearest-vertex distance both ways, summed) / sqrt(area of the target), mean over pairs",
+                "mean_chamfer_one_sided": "the frame-at-t=1 -> target half of mean_chamfer",
+            }
+        )
     return out
+
+
+def summary(metrics_dict: Mapping[str, Any], out_dir: str | os.PathLike | None = None) -> str:
+    """The one-line summary ``evaluate.py`` prints (errors, PCK AUC, time; interpolation metrics if present)."""
+    m = metrics_dict
+    text = (
+        f"{m['n_pairs']} pairs: mean geodesic error {m['mean_geodesic_error']:.4f} "
+        f"(x100: {100 * m['mean_geodesic_error']:.2f}), PCK AUC {m['pck_auc']:.3f}, "
+        f"{m['seconds_per_pair']:.3f} s/pair"
+    )
+    if "mean_geodesic_error_sym" in m:
+        text += f"; vs mirrored ground truth {m['mean_geodesic_error_sym']:.4f}"
+    if "mean_deformation_conformal_distortion" in m:
+        text += (
+            f"; interpolation: conformal distortion {m['mean_deformation_conformal_distortion']:.4f}, "
+            f"Chamfer X(1)-Y {m['mean_chamfer']:.4f} (one-sided {m['mean_chamfer_one_sided']:.4f})"
+        )
+    if out_dir is not None:
+        text += f" -> {out_dir}"
+    return text
 
 
 def write_metrics_json(path: str | os.PathLike, metrics_dict: Mapping[str, Any]) -> Path:

@@ -1,7 +1,9 @@
-"""Matchers that need no training: the evaluation's self-check, a descriptor baseline, and maps from files.
+"""Matchers that need no training: the evaluation's self-check, a descriptor baseline, maps from files, and
+the linear-blend interpolation around any of them.
 
-All three implement the matcher protocol of :mod:`shapecorr.matching.result` and are usable as
-``evaluate.py model=identity_gt|descriptor_nn`` (``PrecomputedMaps`` backs ``evaluate.py maps_dir=DIR``).
+All implement the matcher protocol of :mod:`shapecorr.matching.result` and are usable as
+``evaluate.py model=identity_gt|descriptor_nn|linear_blend`` (``PrecomputedMaps`` backs
+``evaluate.py maps_dir=DIR``).
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ DESCRIPTOR_NAMES = ("wks", "hks", "shot")
 DESCRIPTOR_NORMALIZATIONS = ("none", "l2", "standardize")
 #: Rows of x processed at once by the brute-force nearest-neighbour search (bounds memory to chunk * n_y).
 NN_CHUNK_ROWS = 4096
+#: Default frames of LinearBlend.match: the evaluation times of NeuroMorph (issue 6, ``eval_times``).
+LINEAR_BLEND_TIMES = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
 class IdentityGT:
@@ -181,3 +185,77 @@ class PrecomputedMaps:
 
             p2p = read_map(path, one_based=self.one_based, n_source=n_x, n_target=n_y)
         return MatchResult(p2p=torch.as_tensor(np.asarray(p2p, dtype=np.int64)))
+
+
+class LinearBlend(torch.nn.Module):
+    """The linear-blend interpolation baseline around any matcher (NeuroMorph's interpolation benchmark).
+
+    The maps are those of the wrapped matcher; the deformation moves each vertex of x on a straight line
+    towards its image on y: ``X(t) = x + t (y[p2p] - x)``, so X(0) = x, X(1) = y[p2p] (on y's vertices) and
+    t > 1 extrapolates along the same lines. It gives any matcher an ``interpolate`` method, which makes the
+    whole interpolation path of ``evaluate.py`` (frames, Chamfer distance, conformal distortion along the
+    sequence, pose transfer) usable without a learned model.
+
+    It is a ``torch.nn.Module`` only so that ``.eval()`` and ``.to(device)`` reach a wrapped learned model
+    (registered as a submodule); it has no parameters of its own.
+
+    Parameters
+    ----------
+    matcher : Matcher
+        Any object with ``match(x, y) -> MatchResult``; its ``required_operators`` and
+        ``needs_ground_truth`` are passed through.
+    times : sequence of float
+        Frames of :meth:`match` (default :data:`LINEAR_BLEND_TIMES`); :meth:`interpolate` takes any times.
+    """
+
+    def __init__(self, matcher, times=LINEAR_BLEND_TIMES):
+        super().__init__()
+        if not callable(getattr(matcher, "match", None)):
+            raise ConfigError(f"LinearBlend wraps a matcher (with a match(x, y) method), got {type(matcher).__name__}")
+        values = [float(t) for t in times]
+        if not values or not all(np.isfinite(values)):
+            raise ConfigError(f"LinearBlend times must be a non-empty list of finite numbers, got {values}")
+        self.matcher = matcher
+        self.times = tuple(values)
+
+    @property
+    def required_operators(self) -> dict:
+        return dict(getattr(self.matcher, "required_operators", {}) or {})
+
+    @property
+    def needs_ground_truth(self) -> bool:
+        return bool(getattr(self.matcher, "needs_ground_truth", False))
+
+    @staticmethod
+    def blend(verts_x: torch.Tensor, verts_y: torch.Tensor, p2p: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
+        """Frames ``x + t (y[p2p] - x)``.
+
+        Parameters
+        ----------
+        verts_x : (n_x, 3) float
+        verts_y : (n_y, 3) float
+        p2p : (n_x,) int64
+            Map x -> y.
+        times : (T,) float
+
+        Returns
+        -------
+        (T, n_x, 3) float, dtype and device of ``verts_x``
+        """
+        times = times.to(device=verts_x.device, dtype=verts_x.dtype)
+        step = verts_y[p2p.to(verts_y.device)].to(verts_x.dtype) - verts_x
+        return verts_x[None] + times[:, None, None] * step[None]
+
+    def interpolate(self, x, y, times) -> MatchResult:
+        """The wrapped matcher's maps and the linear blend at ``times (T,)`` (any finite values)."""
+        times = torch.as_tensor(times, dtype=x.verts.dtype, device=x.verts.device).reshape(-1)
+        if not torch.isfinite(times).all():
+            raise NumericalError(f"interpolation times must be finite, got {times.tolist()}")
+        result = self.matcher.match(x, y)
+        frames = self.blend(x.verts, y.verts, result.p2p, times)
+        return MatchResult(p2p=result.p2p, p2p_inv=result.p2p_inv, deformation=frames, times=times,
+                           extras=dict(result.extras))
+
+    def match(self, x, y) -> MatchResult:
+        """:meth:`interpolate` at the default frames ``times``."""
+        return self.interpolate(x, y, torch.tensor(self.times))

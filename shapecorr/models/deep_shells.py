@@ -12,6 +12,13 @@ Training step, for one pair: ``num_samples`` vertices per shape drawn uniformly 
 run resumed from a checkpoint draws exactly the samples the uninterrupted run would have drawn (the global
 step is not used: with gradient accumulation many batches share one).
 
+Published weights: ``pretrained=PATH`` initializes the filter bank from the original's released checkpoint
+(``ckpt_*.pth``, :func:`~shapecorr.nn.spectral_conv.load_original_deep_shells_weights`) or from one of our
+Lightning checkpoints (``.ckpt``: its ``backbone.*`` weights); ``configs/model/deep_shells_published.yaml`` takes the
+path from ``$SHAPECORR_DEEP_SHELLS_WEIGHTS`` so that ``evaluate.py model=deep_shells_published`` needs no checkpoint.
+The path is not a hyperparameter of the checkpoints this module writes (they hold the weights themselves, and a
+checkpoint must load after the file has moved); it is recorded under :data:`PRETRAINED_CHECKPOINT_KEY`.
+
 ``match``: features at full resolution, the coarse OT level and the axiomatic refinement (``layer.refine_*``,
 published 40 levels from 6 to 499). During training, validation uses a cheaper refinement with
 ``val_refine_levels`` log-spaced levels over the same range (``None``: the full schedule; ``0``: no refinement),
@@ -22,6 +29,8 @@ full schedule (``refine=False`` disables it everywhere).
 from __future__ import annotations
 
 from dataclasses import replace
+from os import PathLike
+from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -45,6 +54,7 @@ from shapecorr.nn.spectral_conv import (
     DEFAULT_NUM_EIGS,
     DEFAULT_OUT_CHANNELS,
     SpectralFilterBank,
+    load_original_deep_shells_weights,
 )
 
 #: Deep Shells optimizer: Adam with learning rate 1e-4 (methods-digest §2.3, train.py of the original).
@@ -52,6 +62,12 @@ DEFAULT_LR = 1e-4
 #: Input descriptor of the published network (SHOT, 352 channels).
 DEFAULT_DESCRIPTOR = "shot"
 BACKBONES = ("spectral", "identity")
+#: Key of our Lightning checkpoints whose ``backbone.*`` entries ``pretrained`` loads.
+LIGHTNING_STATE_KEY = "state_dict"
+#: Prefix of the filter-bank parameters in a DeepShells state dict.
+BACKBONE_PREFIX = "backbone."
+#: Extra checkpoint entry recording the file the weights were initialized from (provenance only).
+PRETRAINED_CHECKPOINT_KEY = "deep_shells_pretrained"
 
 
 def _as_config(layer: Mapping[str, Any] | DeepShellsConfig | None, num_samples: int) -> DeepShellsConfig:
@@ -92,6 +108,9 @@ class DeepShells(CorrespondenceModule):
         Refinement levels during validation while fitting (cheap mode); ``None`` = the full schedule.
     seed : int
         Base seed of the per-step vertex sampling.
+    pretrained : path-like, optional
+        Initial filter-bank weights: the original's released ``.pth`` or one of our ``.ckpt`` files (see the module
+        docstring); needs ``backbone="spectral"`` with matching sizes.
     """
 
     def __init__(
@@ -112,9 +131,11 @@ class DeepShells(CorrespondenceModule):
         refine: bool = True,
         val_refine_levels: int | None = None,
         seed: int = 0,
+        pretrained: str | PathLike | None = None,
     ):
         super().__init__()
-        self.save_hyperparameters()
+        # the weights themselves are in our checkpoints; the file they came from need not exist when one is loaded
+        self.save_hyperparameters(ignore=["pretrained"])
         if backbone not in BACKBONES:
             raise ConfigError(f"deep_shells: backbone must be one of {BACKBONES}, got {backbone!r}")
         if not lr > 0:
@@ -143,6 +164,59 @@ class DeepShells(CorrespondenceModule):
             weights = weights / weights.sum()
         self.register_buffer("level_weights", weights, persistent=False)
         self._validating_during_fit = False
+        self.pretrained = None
+        if pretrained is not None:
+            self.load_pretrained(pretrained)
+
+    # -- published / earlier weights --------------------------------------------------------------------------
+    def load_pretrained(self, path: str | PathLike) -> None:
+        """Load the filter-bank weights from the original's ``.pth`` or one of our Lightning ``.ckpt`` files.
+
+        The format is recognized by content: a dict with ``state_dict`` is ours (its ``backbone.*`` entries, which
+        must fit this module's sizes exactly), anything else goes to
+        :func:`~shapecorr.nn.spectral_conv.load_original_deep_shells_weights` (which checks the sizes, the filter
+        scale and the eigenpair count against this module).
+
+        Raises
+        ------
+        ConfigError
+            No spectral backbone, missing or unreadable file, not a Deep Shells checkpoint, or weights that do not
+            fit (the message names the file).
+        """
+        path = Path(path).expanduser()
+        if self.backbone is None:
+            raise ConfigError(f"deep_shells: pretrained weights need backbone=spectral, got {self.backbone_name!r}",
+                              path=path)
+        if not path.is_file():
+            raise ConfigError("deep_shells: pretrained weights file not found (model.pretrained; for "
+                              "model=deep_shells_published set SHAPECORR_DEEP_SHELLS_WEIGHTS)", path=path)
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # torch raises several unrelated types for unreadable/unsafe files
+            raise ConfigError(f"deep_shells: not a readable torch checkpoint ({type(exc).__name__}: {exc})",
+                              path=path) from None
+        if isinstance(ckpt, dict) and LIGHTNING_STATE_KEY in ckpt:
+            self._load_backbone_state(ckpt[LIGHTNING_STATE_KEY], path)
+        else:
+            load_original_deep_shells_weights(self.backbone, path)
+        self.pretrained = str(path)
+
+    def _load_backbone_state(self, state: Any, path: Path) -> None:
+        if not isinstance(state, dict):
+            raise ConfigError("deep_shells: the checkpoint's state_dict is not a dict", path=path)
+        backbone = {k[len(BACKBONE_PREFIX):]: v for k, v in state.items() if k.startswith(BACKBONE_PREFIX)}
+        if not backbone:
+            raise ConfigError("deep_shells: the checkpoint holds no filter-bank weights (no 'backbone.*' entries; "
+                              "trained with backbone=identity?)", path=path)
+        try:
+            self.backbone.load_state_dict(backbone, strict=True)
+        except RuntimeError as exc:  # missing/unexpected keys or shape mismatches, listed by torch
+            raise ConfigError(f"deep_shells: the checkpoint's filter bank does not fit this model (check "
+                              f"in/out_channels, hidden_channels, num_basis): {exc}", path=path) from None
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        if self.pretrained is not None:
+            checkpoint[PRETRAINED_CHECKPOINT_KEY] = self.pretrained
 
     # -- data requirements ------------------------------------------------------------------------------------
     @property

@@ -129,8 +129,9 @@ def test_deformation_metrics_and_sequences(spheres, tmp_path):
     middle = 0.5 * (x.verts.numpy() + y.verts.numpy()[spheres.true_map(0, 1)])
     expected = metrics.mean_conformal_distortion(x.verts.numpy(), x.faces.numpy(), middle) / 3
     assert 0 < r.deformation_conformal_distortion == pytest.approx(expected, rel=1e-4, abs=1e-6)
-    frames = sorted((tmp_path / "sequences" / "s0__s1").glob("t_*.ply"))
-    assert [f.name for f in frames] == ["t_000.ply", "t_001.ply", "t_002.ply"]
+    frames = sorted((tmp_path / "interp" / "s0__s1").glob("t_*.ply"))
+    assert [f.name for f in frames] == ["t_00.ply", "t_01.ply", "t_02.ply"]
+    assert (tmp_path / "interp" / "s0__s1" / "times.txt").read_text().split() == ["0.0", "0.5", "1.0"]
 
 
 def test_record_json_is_readable(spheres, tmp_path):

@@ -1,0 +1,472 @@
+"""Training-time augmentation of shape pairs: remeshing to random resolutions and a shared rotation.
+
+NeuroMorph (Eisenberger et al., CVPR 2021; methods-digest §4.1) trains on pairs whose shapes are remeshed
+independently to random resolutions (every resolution 200..2000 of its 2000-vertex meshes, one drawn
+uniformly per shape and step) and rotated by the *same* random angle about the up axis (y for FAUST).
+
+Remeshing here uses :func:`shapecorr.geometry.remeshing.remesh` (isotropic Botsch-Kobbelt remeshing to a
+vertex count). The original decimated with MATLAB's reducepatch and snapped the new vertices onto old ones;
+ours moves vertices, so every remesh carries its correspondence to the shape it came from
+(:class:`Remeshed`):
+
+* ``source_vertex (m,)``: for each new vertex, the nearest old vertex (maps *into* the original, e.g. to carry
+  a map onto a remeshed target back to the full-resolution target);
+* ``nearest_vertex (n,)``: for each old vertex, the nearest new vertex (ground truth: reference point r at old
+  vertex ``corres[r]`` is at new vertex ``nearest_vertex[corres[r]]``; maps *from* the full-resolution
+  source through its remesh);
+* ``lift_faces (n,)`` and ``lift_weights (n, 3)``: the triangle of the remesh closest to each old vertex and
+  the barycentric coordinates of that closest point, to carry a per-vertex field (a displacement) from the
+  remesh back to the original by linear interpolation.
+
+A bounded pool. Remeshing (~1 s of CPU at 2000 vertices) and the geodesic matrix of a remesh (~2 s) are
+cached with :class:`~shapecorr.data.cache.ShapeCache`, keyed by the content of the shape, the target
+resolution and the remesher settings. To keep that cache finite, each shape has a fixed pool of
+``variants`` resolutions (default 8), drawn once from the configured range by a generator seeded with
+``(seed, content hash of the shape)``, without replacement; a training step picks one pool entry per
+shape. The remesher is deterministic, so the resolution identifies the remesh and the key needs no variant
+number. Worst case on disk: ``shapes x variants`` remeshes (+ their geodesic matrices, 16 MB each at 2000
+vertices: 80 FAUST_r shapes x 8 = 640 entries, ~10 GB with geodesics). The range is clipped to the shape's
+own vertex count (never upsampled: the original only decimated).
+
+Rotation: an angle drawn uniformly in [0, 2 pi) about the configured axis, applied to both shapes (after
+the geodesics are looked up, which do not depend on it).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any, Mapping
+
+import igl
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from shapecorr.data.cache import ShapeCache, content_hash
+from shapecorr.data.datasets import PairSample, ShapeSample
+from shapecorr.data.operators import geodesics_cached
+from shapecorr.data.shape import Shape, triangle_areas
+from shapecorr.errors import ConfigError, NumericalError
+from shapecorr.geometry.remeshing import REMESH_ITERATIONS, REMESH_MAX_ROUNDS, REMESH_RTOL, remesh
+
+#: Version of the cached remeshes (bump when remeshing or the stored correspondence changes).
+REMESH_CACHE_VERSION = 1
+#: NeuroMorph remeshing augmentation: every resolution from 200 to 2000 vertices (methods-digest §4.1.3).
+DEFAULT_RESOLUTION_RANGE = (200, 2000)
+#: Remeshes per shape (project choice: a finite pool keeps the cache bounded, see the module docstring).
+DEFAULT_REMESH_VARIANTS = 8
+#: NeuroMorph FAUST/SHREC'20 rotation axis: y (axis = 1; MANO uses z), methods-digest §4.1.6.
+DEFAULT_UP_AXIS = "y"
+AXES = {"x": 0, "y": 1, "z": 2}
+#: Geodesic method for remeshed shapes (shapecorr.geometry.geodesics; the original used fast marching).
+DEFAULT_GEODESICS = "heat"
+#: Barycentric coordinates outside [-tol, 1 + tol] mean a degenerate closest triangle (clamped, renormalized).
+BARYCENTRIC_TOL = 1e-6
+#: Sub-seed separating the resolution pools from the per-step draws of the same base seed.
+_POOL_STREAM = 0x5EED
+
+
+@dataclass(frozen=True)
+class Remeshed:
+    """A remesh of a shape and its correspondence to the original (see the module docstring).
+
+    Attributes
+    ----------
+    verts : (m, 3) float32
+    faces : (g, 3) int64
+    source_vertex : (m,) int64
+        Nearest original vertex of each new vertex.
+    nearest_vertex : (n,) int64
+        Nearest new vertex of each original vertex.
+    lift_faces : (n,) int64
+        Remesh triangle closest to each original vertex.
+    lift_weights : (n, 3) float32
+        Barycentric coordinates (rows sum to 1) of that closest point in its triangle.
+    """
+
+    verts: np.ndarray
+    faces: np.ndarray
+    source_vertex: np.ndarray
+    nearest_vertex: np.ndarray
+    lift_faces: np.ndarray
+    lift_weights: np.ndarray
+
+    @property
+    def n_verts(self) -> int:
+        return int(self.verts.shape[0])
+
+    def as_arrays(self) -> dict[str, np.ndarray]:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+    def lift(self, values: torch.Tensor) -> torch.Tensor:
+        """Carry per-vertex values of the remesh to the original vertices by barycentric interpolation.
+
+        Parameters
+        ----------
+        values : (..., m, c) float
+            Per-vertex values on the remesh (any device).
+
+        Returns
+        -------
+        (..., n, c) float
+        """
+        tri = torch.as_tensor(self.faces, device=values.device)[torch.as_tensor(self.lift_faces, device=values.device)]
+        weights = torch.as_tensor(self.lift_weights, device=values.device, dtype=values.dtype)
+        corners = values.index_select(-2, tri.reshape(-1)).unflatten(-2, tri.shape)  # (..., n, 3, c)
+        return (corners * weights.unsqueeze(-1)).sum(-2)
+
+
+def _barycentric_lift(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest triangle of (verts, faces) to each point and the barycentric coordinates of the closest point."""
+    _, tri, closest = igl.point_mesh_squared_distance(points, verts, faces)
+    tri = np.asarray(tri, dtype=np.int64)
+    corners = verts[faces[tri]]
+    weights = igl.barycentric_coordinates(closest, corners[:, 0].copy(), corners[:, 1].copy(), corners[:, 2].copy())
+    weights = np.asarray(weights, dtype=np.float64)
+    bad = ~np.isfinite(weights).all(axis=1) | (weights < -BARYCENTRIC_TOL).any(axis=1)
+    if bad.any():
+        # Degenerate (zero-area) closest triangle: fall back to its corner nearest to the point.
+        d = np.linalg.norm(corners[bad] - points[bad, None], axis=-1)
+        weights[bad] = 0.0
+        weights[np.flatnonzero(bad), d.argmin(axis=1)] = 1.0
+    weights = np.clip(weights, 0.0, None)
+    weights /= weights.sum(axis=1, keepdims=True)
+    return tri, weights
+
+
+def remesh_with_correspondence(
+    verts,
+    faces,
+    n_verts: int,
+    iterations: int = REMESH_ITERATIONS,
+    rtol: float = REMESH_RTOL,
+    max_rounds: int = REMESH_MAX_ROUNDS,
+) -> Remeshed:
+    """Remesh a shape to about ``n_verts`` vertices and relate the remesh to the original.
+
+    Parameters
+    ----------
+    verts : (n, 3) float
+    faces : (f, 3) int
+    n_verts : int
+        Target vertex count (see :func:`shapecorr.geometry.remeshing.remesh` for the achieved tolerance).
+    iterations, rtol, max_rounds
+        Remesher settings.
+
+    Returns
+    -------
+    Remeshed
+    """
+    v = np.asarray(verts.detach().cpu().numpy() if isinstance(verts, torch.Tensor) else verts, dtype=np.float64)
+    f = np.asarray(faces.detach().cpu().numpy() if isinstance(faces, torch.Tensor) else faces, dtype=np.int64)
+    new_v, new_f = remesh(v, f, int(n_verts), iterations=iterations, rtol=rtol, max_rounds=max_rounds)
+    # Stored positions are float32; relate the float32 positions to the original so that a cache hit and a
+    # fresh computation give identical arrays.
+    new_v = new_v.astype(np.float32)
+    new_v64 = new_v.astype(np.float64)
+    _, source = cKDTree(v).query(new_v64, k=1)
+    _, nearest = cKDTree(new_v64).query(v, k=1)
+    lift_faces, lift_weights = _barycentric_lift(v, new_v64, new_f)
+    return Remeshed(
+        verts=new_v,
+        faces=new_f.astype(np.int64),
+        source_vertex=np.asarray(source, dtype=np.int64),
+        nearest_vertex=np.asarray(nearest, dtype=np.int64),
+        lift_faces=lift_faces,
+        lift_weights=lift_weights.astype(np.float32),
+    )
+
+
+def cached_remesh(cache: ShapeCache, verts, faces, n_verts: int) -> Remeshed:
+    """:func:`remesh_with_correspondence` through the shape cache (key: shape content + ``n_verts`` + settings).
+
+    Parameters
+    ----------
+    cache : ShapeCache
+    verts : (n, 3) float
+    faces : (f, 3) int
+    n_verts : int
+
+    Returns
+    -------
+    Remeshed
+        Identical arrays on a hit and on a miss.
+    """
+    v = verts.detach().cpu().numpy() if isinstance(verts, torch.Tensor) else np.asarray(verts)
+    f = faces.detach().cpu().numpy() if isinstance(faces, torch.Tensor) else np.asarray(faces)
+    params = {"n_verts": int(n_verts), "iterations": REMESH_ITERATIONS, "rtol": REMESH_RTOL,
+              "max_rounds": REMESH_MAX_ROUNDS}
+    arrays = cache.get_or_compute(
+        "remesh", v, f, params, REMESH_CACHE_VERSION,
+        lambda: remesh_with_correspondence(v, f, n_verts).as_arrays(),
+    )
+    return Remeshed(**{k: arrays[k] for k in Remeshed.__dataclass_fields__})
+
+
+def remeshed_sample(sample: ShapeSample, remeshed: Remeshed) -> ShapeSample:
+    """A :class:`ShapeSample` of the remesh, with the ground truth carried over.
+
+    The remeshed sample keeps the normalization transform of the original (``denormalize`` still gives input
+    units), gets the lumped (barycentric) vertex areas as ``mass`` and carries no eigenbasis (``evals (0,)``,
+    ``evecs (m, 0)``) and no descriptors: NeuroMorph needs neither. Its name is ``<name>@<m>``.
+
+    Parameters
+    ----------
+    sample : ShapeSample
+        The original shape (any device; the result is on the CPU).
+    remeshed : Remeshed
+        A remesh of ``sample``.
+
+    Returns
+    -------
+    ShapeSample
+        ``corres[r] = nearest_vertex[sample.corres[r]]`` (and the same for ``corres_sym``).
+    """
+    if remeshed.nearest_vertex.shape[0] != sample.shape.n_verts:
+        raise ConfigError(
+            f"{sample.name}: the remesh relates {remeshed.nearest_vertex.shape[0]} original vertices but the shape "
+            f"has {sample.shape.n_verts}"
+        )
+    verts = torch.from_numpy(np.ascontiguousarray(remeshed.verts, dtype=np.float32))
+    faces = torch.from_numpy(np.ascontiguousarray(remeshed.faces, dtype=np.int64))
+    m = verts.shape[0]
+    mass = np.bincount(remeshed.faces.ravel(), np.repeat(triangle_areas(remeshed.verts, remeshed.faces) / 3.0, 3),
+                       minlength=m)
+    nearest = torch.from_numpy(remeshed.nearest_vertex)
+    carry = lambda c: None if c is None else nearest[c.detach().cpu()]  # noqa: E731
+    shape = sample.shape
+    return ShapeSample(
+        shape=Shape(verts=verts, faces=faces, name=f"{shape.name}@{m}", path=shape.path, scale=shape.scale,
+                    offset=shape.offset),
+        evals=torch.zeros(0),
+        evecs=torch.zeros(m, 0),
+        mass=torch.from_numpy(mass.astype(np.float32)),
+        features={},
+        corres=carry(sample.corres),
+        corres_sym=carry(sample.corres_sym),
+    )
+
+
+def pool_resolutions(
+    shape_hash: str,
+    n_verts: int,
+    resolution_range: tuple[int, int] = DEFAULT_RESOLUTION_RANGE,
+    variants: int = DEFAULT_REMESH_VARIANTS,
+    seed: int = 0,
+) -> np.ndarray:
+    """The fixed pool of remesh resolutions of one shape (module docstring).
+
+    Parameters
+    ----------
+    shape_hash : str
+        :func:`~shapecorr.data.cache.content_hash` of the shape.
+    n_verts : int
+        Its vertex count; the range is clipped to it (no upsampling).
+    resolution_range : (lo, hi)
+        Inclusive range of target vertex counts.
+    variants : int
+        Pool size; fewer when the clipped range holds fewer resolutions.
+    seed : int
+
+    Returns
+    -------
+    (k,) int64
+        Distinct resolutions, sorted, ``1 <= k <= variants``.
+    """
+    lo, hi = (min(int(r), int(n_verts)) for r in resolution_range)
+    rng = np.random.default_rng([int(seed), _POOL_STREAM, int(shape_hash[:16], 16)])
+    count = min(int(variants), hi - lo + 1)
+    return np.sort(lo + rng.choice(hi - lo + 1, size=count, replace=False)).astype(np.int64)
+
+
+def rotation_about_axis(angle: float, axis: str = DEFAULT_UP_AXIS, dtype=torch.float32) -> torch.Tensor:
+    """Rotation matrix by ``angle`` (radians, right-handed) about a coordinate axis.
+
+    Returns
+    -------
+    (3, 3) tensor
+        Proper rotation; ``verts @ R.T`` rotates row vectors.
+    """
+    if axis not in AXES:
+        raise ConfigError(f"rotation axis must be one of {sorted(AXES)}, got {axis!r}")
+    k = AXES[axis]
+    i, j = (k + 1) % 3, (k + 2) % 3
+    c, s = math.cos(angle), math.sin(angle)
+    rot = torch.eye(3, dtype=torch.float64)
+    rot[i, i], rot[i, j], rot[j, i], rot[j, j] = c, -s, s, c
+    return rot.to(dtype)
+
+
+def rotate_sample(sample: ShapeSample, rotation: torch.Tensor) -> ShapeSample:
+    """The sample with its vertices rotated, ``verts @ R.T`` (everything else unchanged).
+
+    Parameters
+    ----------
+    sample : ShapeSample
+    rotation : (3, 3) float
+    """
+    verts = sample.shape.verts @ rotation.to(sample.shape.verts).T
+    return replace(sample, shape=replace(sample.shape, verts=verts))
+
+
+@dataclass(frozen=True)
+class AugmentationConfig:
+    """Options of :class:`PairAugmenter` (Hydra node ``model.augment`` of NeuroMorph).
+
+    Attributes
+    ----------
+    remesh : bool
+        Remesh each shape of a pair to a random resolution of its pool.
+    rotate : bool
+        Rotate both shapes by one random angle about ``axis``.
+    resolution : (lo, hi)
+        Inclusive range of remesh vertex counts (NeuroMorph: 200..2000).
+    variants : int
+        Pool size per shape.
+    axis : {"x", "y", "z"}
+        Rotation axis (FAUST: y).
+    """
+
+    remesh: bool = True
+    rotate: bool = True
+    resolution: tuple[int, int] = DEFAULT_RESOLUTION_RANGE
+    variants: int = DEFAULT_REMESH_VARIANTS
+    axis: str = DEFAULT_UP_AXIS
+
+    def __post_init__(self):
+        res = tuple(int(r) for r in self.resolution)
+        object.__setattr__(self, "resolution", res)
+        if len(res) != 2 or not 4 <= res[0] <= res[1]:
+            raise ConfigError(f"augment.resolution must be [lo, hi] with 4 <= lo <= hi, got {list(self.resolution)}")
+        if int(self.variants) < 1:
+            raise ConfigError(f"augment.variants must be >= 1, got {self.variants}")
+        if self.axis not in AXES:
+            raise ConfigError(f"augment.axis must be one of {sorted(AXES)}, got {self.axis!r}")
+
+    @classmethod
+    def from_options(cls, options: Mapping[str, Any] | "AugmentationConfig" | None) -> "AugmentationConfig":
+        if isinstance(options, cls):
+            return options
+        options = dict(options or {})
+        unknown = set(options) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ConfigError(f"unknown augment option(s) {sorted(unknown)}; allowed: {sorted(cls.__dataclass_fields__)}")
+        return cls(**options)
+
+
+@dataclass(frozen=True, eq=False)
+class AugmentedPair:
+    """A training pair after augmentation (CPU tensors).
+
+    Attributes
+    ----------
+    pair : PairSample
+        The (remeshed, rotated) shapes.
+    dist_x, dist_y : (n_x, n_x), (n_y, n_y) float32 or None
+        Geodesic matrices of the shapes (rotation-invariant), when requested.
+    remeshed_x, remeshed_y : Remeshed or None
+        The remeshes used (None: the shape as given).
+    rotation : (3, 3) float32
+        Applied to both shapes (the identity without rotation).
+    """
+
+    pair: PairSample
+    dist_x: torch.Tensor | None
+    dist_y: torch.Tensor | None
+    remeshed_x: Remeshed | None
+    remeshed_y: Remeshed | None
+    rotation: torch.Tensor
+
+
+class PairAugmenter:
+    """Remeshing + shared-rotation augmentation of a pair, with cached remeshes and geodesics.
+
+    Parameters
+    ----------
+    config : AugmentationConfig or mapping
+    cache : ShapeCache
+        Where remeshes and geodesic matrices are cached.
+    max_vertices : int, optional
+        Working resolution: without remeshing augmentation, a shape with more vertices is remeshed to this
+        many (deterministically, cached); with it, the resolution range is clipped to it as well.
+    seed : int
+        Seed of the resolution pools.
+    geodesics : {"heat", "exact"}
+        Geodesic method for the distance matrices.
+    """
+
+    def __init__(
+        self,
+        config: AugmentationConfig | Mapping[str, Any] | None,
+        cache: ShapeCache,
+        max_vertices: int | None = None,
+        seed: int = 0,
+        geodesics: str = DEFAULT_GEODESICS,
+    ):
+        self.config = AugmentationConfig.from_options(config)
+        if max_vertices is not None and int(max_vertices) < 4:
+            raise ConfigError(f"the working resolution must be >= 4 vertices, got {max_vertices}")
+        self.cache = cache
+        self.max_vertices = None if max_vertices is None else int(max_vertices)
+        self.seed = int(seed)
+        self.geodesics = geodesics
+
+    def resolutions(self, sample: ShapeSample) -> np.ndarray:
+        """The remesh pool of a shape (sorted vertex counts)."""
+        n = sample.shape.n_verts if self.max_vertices is None else min(sample.shape.n_verts, self.max_vertices)
+        verts, faces = sample.shape.verts.detach().cpu(), sample.shape.faces.detach().cpu()
+        return pool_resolutions(content_hash(verts, faces), n, self.config.resolution, self.config.variants, self.seed)
+
+    def working_remesh(self, sample: ShapeSample, rng: np.random.Generator | None) -> Remeshed | None:
+        """The remesh a step uses for ``sample``: a random pool entry, the working-resolution copy, or None."""
+        shape = sample.shape
+        if self.config.remesh:
+            if rng is None:
+                raise ConfigError("remeshing augmentation needs a random generator")
+            pool = self.resolutions(sample)
+            target = int(pool[rng.integers(pool.shape[0])])
+        elif self.max_vertices is not None and shape.n_verts > self.max_vertices:
+            target = self.max_vertices
+        else:
+            return None
+        return cached_remesh(self.cache, shape.verts.detach().cpu(), shape.faces.detach().cpu(), target)
+
+    def distances(self, sample: ShapeSample) -> torch.Tensor:
+        """Cached all-pairs geodesic matrix ``(n, n)`` float32 of a (CPU) sample."""
+        dist = geodesics_cached(self.cache, sample.shape.verts.detach().cpu().numpy(),
+                                sample.shape.faces.detach().cpu().numpy(), method=self.geodesics)
+        if not np.isfinite(dist).all():
+            raise NumericalError(f"{sample.name}: geodesic matrix contains NaN/Inf (disconnected remesh?)")
+        return torch.from_numpy(np.ascontiguousarray(dist, dtype=np.float32))
+
+    def __call__(self, pair: PairSample, rng: np.random.Generator | None, geodesics: bool = True) -> AugmentedPair:
+        """Augment one pair.
+
+        Parameters
+        ----------
+        pair : PairSample
+            Any device; the result is on the CPU.
+        rng : numpy Generator
+            Draws the pool entries (x first, then y) and the angle; seed it per step for reproducibility.
+        geodesics : bool
+            Look up (compute and cache on a miss) the geodesic matrices of the augmented shapes.
+
+        Returns
+        -------
+        AugmentedPair
+        """
+        samples, remeshes = [], []
+        for sample in (pair.x, pair.y):
+            sample = sample.to("cpu")
+            remeshed = self.working_remesh(sample, rng)
+            remeshes.append(remeshed)
+            samples.append(sample if remeshed is None else remeshed_sample(sample, remeshed))
+        dists = [self.distances(s) for s in samples] if geodesics else [None, None]
+        rotation = torch.eye(3)
+        if self.config.rotate:
+            if rng is None:
+                raise ConfigError("rotation augmentation needs a random generator")
+            rotation = rotation_about_axis(float(rng.uniform(0.0, 2.0 * math.pi)), self.config.axis)
+            samples = [rotate_sample(s, rotation) for s in samples]
+        return AugmentedPair(PairSample(*samples), dists[0], dists[1], remeshes[0], remeshes[1], rotation)
