@@ -209,7 +209,7 @@ def interp_times_option(cfg: DictConfig) -> tuple[float, ...] | None:
     if value is None:
         return None
     if not OmegaConf.is_list(value):
-        raise ConfigError(f"interp_times must be a list of times, e.g. interp_times=[0,0.5,1,1.5], or null; got {value!r}")
+        raise ConfigError(f"interp_times must be a list of times (e.g. interp_times=[0,0.5,1,1.5]) or null, got {value!r}")
     return protocol.check_interp_times(OmegaConf.to_container(value, resolve=True))
 
 

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from shapecorr.data.cache import ShapeCache, default_cache_root
 from shapecorr.data.datamodule import ShapePairDataModule
@@ -186,13 +186,12 @@ def run_pose_transfer(cfg: DictConfig) -> dict[str, Any]:
     matcher = build_matcher(cfg, device)
     require_interpolating(matcher, "maps_dir" if cfg.get("maps_dir") else None)
     data = cfg.get("data") or {}
-    plain = lambda key: OmegaConf.to_container(data[key], resolve=True) if data.get(key) is not None else None  # noqa: E731
     # Only the data config's normalization, operators and cache folder are used (with_operators merges the
     # matcher's needs as for an evaluation); the module's root is never read.
     dm = ShapePairDataModule(
         root=source.parent,
-        normalization=plain("normalization"),
-        operators=plain("operators"),
+        normalization=data.get("normalization"),
+        operators=data.get("operators"),
         cache_dir=data.get("cache_dir"),
     )
     required = dict(getattr(matcher, "required_operators", {}) or {})

@@ -379,6 +379,15 @@ class AugmentedPair:
     rotation: torch.Tensor
 
 
+def _geometry_only(sample: ShapeSample) -> ShapeSample:
+    """CPU copy of a sample without its eigenbasis and descriptors (augmented shapes carry none)."""
+    move = lambda t: None if t is None else t.detach().cpu()  # noqa: E731
+    shape = sample.shape.to("cpu")
+    return ShapeSample(shape=shape, evals=torch.zeros(0), evecs=torch.zeros(shape.n_verts, 0),
+                       mass=move(sample.mass), features={}, corres=move(sample.corres),
+                       corres_sym=move(sample.corres_sym))
+
+
 class PairAugmenter:
     """Remeshing + shared-rotation augmentation of a pair, with cached remeshes and geodesics.
 
@@ -446,7 +455,8 @@ class PairAugmenter:
         Parameters
         ----------
         pair : PairSample
-            Any device; the result is on the CPU.
+            Any device; the result is on the CPU and carries geometry, lumped areas and ground truth only
+            (no eigenbasis, no descriptors).
         rng : numpy Generator
             Draws the pool entries (x first, then y) and the angle; seed it per step for reproducibility.
         geodesics : bool
@@ -458,7 +468,7 @@ class PairAugmenter:
         """
         samples, remeshes = [], []
         for sample in (pair.x, pair.y):
-            sample = sample.to("cpu")
+            sample = _geometry_only(sample)
             remeshed = self.working_remesh(sample, rng)
             remeshes.append(remeshed)
             samples.append(sample if remeshed is None else remeshed_sample(sample, remeshed))

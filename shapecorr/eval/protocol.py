@@ -34,6 +34,7 @@ the records are the per-pair results that rank 0 merges afterwards (``shapecorr.
 
 from __future__ import annotations
 
+import itertools
 import json
 import multiprocessing
 import os
@@ -81,7 +82,8 @@ class PairRecord:
     n_points : int
         Number of reference points.
     seconds : float
-        Wall time of the matcher alone (``match``), including moving the pair to the device.
+        Wall time of the matcher alone (``match``, or ``interpolate`` at the interpolation times), including
+        moving the pair to the device.
     eval_seconds : float
         Wall time of everything else for this pair (loading, scoring, writing).
     conformal_distortion : float
@@ -294,7 +296,7 @@ def check_interp_times(times) -> tuple[float, ...]:
         raise ConfigError("interp_times is empty; give a list of times, e.g. [0, 0.5, 1], or null")
     if not all(np.isfinite(values)):
         raise ConfigError(f"interp_times must be finite, got {list(values)}")
-    if any(b - a <= TIME_ATOL for a, b in zip(values, values[1:])):
+    if any(b - a <= TIME_ATOL for a, b in itertools.pairwise(values)):
         raise ConfigError(f"interp_times must be strictly increasing, got {list(values)}")
     return values
 

@@ -248,6 +248,12 @@ def _log_kernel_grad(kernel, plan, plan_adj_t, us, vs, g_plan, g_plan_adj_t):
 
 def _sq_euclidean_kernel(x: torch.Tensor, y: torch.Tensor, sigma: float):
     """Gibbs kernel of the squared distances without forming them; returns ``(K, scale, mean)``."""
+    left, right, scale, mean = _sq_euclidean_factors(x, y, sigma)
+    return _blocked_gibbs_kernel(left, right), scale, mean
+
+
+def _sq_euclidean_factors(x: torch.Tensor, y: torch.Tensor, sigma: float):
+    """Thin ``left, right`` with ``left @ right^T = L`` (the log-kernel), and ``(scale, mean)``."""
     xx = (x * x).sum(1)
     yy = (y * y).sum(1)
     # mean_ij |x_i - y_j|^2 without forming the matrix.
@@ -259,7 +265,14 @@ def _sq_euclidean_kernel(x: torch.Tensor, y: torch.Tensor, sigma: float):
     ones_x, ones_y = x.new_ones(x.shape[0], 1), y.new_ones(y.shape[0], 1)
     left = torch.cat([x, xx[:, None], ones_x], 1)
     right = torch.cat([y * (2.0 * scale), ones_y * -scale, (yy * -scale)[:, None]], 1)
-    return _blocked_gibbs_kernel(left, right), scale, float(mean)
+    return left, right, scale, float(mean)
+
+
+def _row_block(n: int, m: int, like: torch.Tensor) -> int:
+    """Rows per block of an ``n x m`` matrix so that a block stays in the L2 cache (all rows off the CPU)."""
+    if like.device.type != "cpu":
+        return max(1, n)
+    return max(1, _BLOCK_BYTES // max(1, m * like.element_size()))
 
 
 def _blocked_gibbs_kernel(left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
@@ -270,7 +283,7 @@ def _blocked_gibbs_kernel(left: torch.Tensor, right: torch.Tensor) -> torch.Tens
     """
     n, m = left.shape[0], right.shape[0]
     kernel = left.new_empty(n, m)
-    rows = n if left.device.type != "cpu" else max(1, _BLOCK_BYTES // max(1, m * left.element_size()))
+    rows = _row_block(n, m, left)
     floor = _LOG_FLOOR_FRACTION * math.log(torch.finfo(left.dtype).tiny)
     right_t = right.transpose(0, 1)
     for start in range(0, n, rows):
@@ -357,7 +370,8 @@ def _products_log_kernel_grad(kernel, us, vs, values_y, values_x, py, qx, g_py, 
     With ``P = K * (alpha beta^T)`` and ``P_adj^T = K * (alpha' beta'^T)``, the plans' gradients
     ``g_py values_y^T`` and ``values_x g_qx^T`` are rank-``p`` and rank-``q``, so every term of ``Lbar`` is
     ``K * (a b^T)`` with thin ``a, b``, and the row/column sums the potentials' adjoints need are thin products
-    with ``K``. Returns ``(Lbar, grad values_y, grad values_x)`` (``None`` where no gradient arrives).
+    with ``K``. Returns ``(Lbar, grad values_y, grad values_x)`` (``None`` where no gradient arrives);
+    ``Lbar`` is written into ``kernel``'s memory (the kernel is destroyed).
     """
     if g_py is None and g_qx is None:
         return None, None, None
@@ -402,8 +416,12 @@ def _products_log_kernel_grad(kernel, us, vs, values_y, values_x, py, qx, g_py, 
         fb.append(b[:, None])
         if t > 0:
             v_bar = -(b * torch.mv(kernel.transpose(0, 1), a * u_bar))
-    lbar = torch.cat(fa, 1) @ torch.cat(fb, 1).transpose(0, 1)
-    return lbar.mul_(kernel), gv_y, gv_x
+    # Lbar overwrites the kernel, row block by row block (the low-rank block stays in cache).
+    fa_all, fb_t = torch.cat(fa, 1), torch.cat(fb, 1).transpose(0, 1)
+    rows = _row_block(n, m, kernel)
+    for start in range(0, n, rows):
+        kernel[start:start + rows].mul_(fa_all[start:start + rows] @ fb_t)
+    return kernel, gv_y, gv_x
 
 
 class _SinkhornCost(torch.autograd.Function):
@@ -462,16 +480,18 @@ class _SinkhornSqEuclidean(torch.autograd.Function):
 class _SinkhornProducts(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, y, values_y, values_x, sigma, num_iters, return_plans):
-        kernel, scale, mean = _sq_euclidean_kernel(x, y, sigma)
+        left, right, scale, mean = _sq_euclidean_factors(x, y, sigma)
+        kernel = _blocked_gibbs_kernel(left, right)
         py, qx, us, vs = _iterate_products(kernel, num_iters, values_y, values_x)
         if return_plans:
             plan = _scaled_kernel(kernel, us[-1], vs[-2])
-            plan_adj = _scaled_kernel(kernel, us[-1], vs[-1]).transpose(0, 1).contiguous()
+            plan_adj = _scaled_kernel(kernel, us[-1], vs[-1]).transpose(0, 1)
         else:
             plan = plan_adj = kernel.new_empty(0)
+        del kernel  # rebuilt in backward from the thin factors (bitwise the same: same blocks, same ops)
         ctx.mark_non_differentiable(plan, plan_adj)
         ctx.set_materialize_grads(False)  # an unused output gets None, not a zero gradient to work through
-        ctx.save_for_backward(x, y, values_y, values_x, kernel, py, qx)
+        ctx.save_for_backward(x, y, values_y, values_x, left, right, py, qx)
         ctx.potentials = (us, vs)
         ctx.scale, ctx.mean = scale, mean
         return py, qx, plan, plan_adj
@@ -479,8 +499,11 @@ class _SinkhornProducts(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, g_py, g_qx, _g_plan, _g_plan_adj):
-        x, y, values_y, values_x, kernel, py, qx = ctx.saved_tensors
+        x, y, values_y, values_x, left, right, py, qx = ctx.saved_tensors
         us, vs = ctx.potentials
+        if g_py is None and g_qx is None:
+            return None, None, None, None, None, None, None
+        kernel = _blocked_gibbs_kernel(left, right)
         lbar, gv_y, gv_x = _products_log_kernel_grad(kernel, us, vs, values_y, values_x, py, qx, g_py, g_qx)
         need = ctx.needs_input_grad
         x_bar = y_bar = None
@@ -610,7 +633,9 @@ def sinkhorn_sq_euclidean_products(
     the product share one pass over ``K``), and the backward pass is in low-rank form: the plans' gradients
     are rank ``p`` and ``q``, so the gradient w.r.t. the log-kernel is ``K * (A B^T)`` with thin ``A, B``
     (module docstring). Equal to ``plans.plan @ values_y`` etc. up to rounding; gradients flow to ``x``,
-    ``y``, ``values_y`` and ``values_x``. Only the kernel is kept for backward (no plan).
+    ``y``, ``values_y`` and ``values_x``. No ``n x m`` buffer is kept for backward: the kernel is rebuilt
+    there from thin factors (one matrix product and an exponential, cheaper on CPUs than keeping a fresh
+    buffer per call alive) and the gradient overwrites it.
 
     Parameters
     ----------

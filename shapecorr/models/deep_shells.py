@@ -281,12 +281,26 @@ class DeepShells(CorrespondenceModule):
             return None  # the identity ablation has nothing to learn
         return torch.optim.Adam(self.parameters(), lr=self.lr)
 
+    def on_fit_start(self) -> None:
+        if self.backbone is None:
+            raise ConfigError("deep_shells: backbone=identity has no parameters to train; evaluate it without "
+                              "training (evaluate.py model=deep_shells_ablation)")
+
     def validation_step(self, batch, batch_idx: int):
         self._validating_during_fit = self._trainer is not None and self._trainer.state.fn == "fit"
         try:
             return super().validation_step(batch, batch_idx)
         finally:
             self._validating_during_fit = False
+
+    def on_validation_epoch_end(self) -> None:
+        trainer = self._trainer
+        if trainer is not None and trainer.state.fn == "fit" and not trainer.sanity_checking:
+            # x-axis of learning curves: training pairs (batches x ranks) seen so far, exact also mid-epoch and
+            # with gradient accumulation (the logged step counts optimizer steps)
+            seen = trainer.fit_loop.epoch_loop.batch_progress.total.completed * trainer.world_size
+            self.log("val/pairs_seen", float(seen), batch_size=1)
+        super().on_validation_epoch_end()
 
     # -- matching ---------------------------------------------------------------------------------------------
     def match_config(self) -> tuple[DeepShellsConfig, bool]:

@@ -117,12 +117,22 @@ class ResnetBlockFC(nn.Module):
 
 
 class _Graph(NamedTuple):
-    """A validated undirected edge list: endpoints, which vertices have an edge, how many do."""
+    """A validated undirected edge list and its directed messages grouped by receiver.
+
+    The directed messages (each edge both ways) are ordered by receiving vertex, and the receivers by degree,
+    so that the messages of the ``count`` receivers of degree ``d`` form one contiguous ``(count, d)`` block:
+    the max aggregation is then a dense reduction per block (``buckets``), its backward a broadcast compare,
+    with no scatter and no gather over messages.
+    """
 
     a: torch.Tensor
     b: torch.Tensor
     has_edge: torch.Tensor  # (n, 1) bool
     n_receiving: int
+    senders: torch.Tensor  # (M,) sender of each directed message, in receiver-grouped order
+    edge_ids: torch.Tensor  # (M,) undirected edge of each message
+    receivers: torch.Tensor  # (n_r,) receiving vertices, grouped by degree
+    buckets: tuple[tuple[int, int, int, int], ...]  # (degree, first receiver, receiver count, first message)
 
 
 def _edge_index(edges: torch.Tensor, n_verts: int, device: torch.device) -> _Graph:
@@ -134,21 +144,48 @@ def _edge_index(edges: torch.Tensor, n_verts: int, device: torch.device) -> _Gra
     edges = edges.to(device=device, dtype=torch.int64)
     if int(edges.min()) < 0 or int(edges.max()) >= n_verts:
         raise ConfigError(f"edges index vertices outside [0, {n_verts})")
-    has_edge = torch.zeros(n_verts, 1, dtype=torch.bool, device=device)
-    has_edge[edges.reshape(-1)] = True
-    return _Graph(edges[:, 0], edges[:, 1], has_edge, int(has_edge.sum()))
+    n_edges = edges.shape[0]
+    a, b = edges[:, 0], edges[:, 1]
+    receiving, sending = torch.cat((a, b)), torch.cat((b, a))
+    edge_of = torch.arange(n_edges, device=device).repeat(2)
+    degree = torch.bincount(receiving, minlength=n_verts)
+    by_degree = torch.argsort(degree * n_verts + torch.arange(n_verts, device=device))
+    receivers = by_degree[degree[by_degree] > 0]
+    slot = torch.full((n_verts,), -1, dtype=torch.int64, device=device)
+    slot[receivers] = torch.arange(receivers.numel(), device=device)
+    order = torch.argsort(slot[receiving], stable=True)
+    degrees, counts = torch.unique_consecutive(degree[receivers], return_counts=True)
+    buckets, first_recv, first_msg = [], 0, 0
+    for d, count in zip(degrees.tolist(), counts.tolist()):
+        buckets.append((d, first_recv, count, first_msg))
+        first_recv, first_msg = first_recv + count, first_msg + d * count
+    return _Graph(a, b, (degree > 0).unsqueeze(1), receivers.numel(), sending[order], edge_of[order], receivers,
+                  tuple(buckets))
 
 
 def _flat_rows(index: torch.Tensor, n_rows: int, n_batch: int) -> torch.Tensor:
     """Row indices into a ``(n_batch * n_rows, c)`` flattening of ``(n_batch, n_rows, c)``: ``(n_batch * E,)``.
 
     Scatters and gathers along dim -2 of a 3-D tensor take a slow generic path on CPU (15x slower than the
-    2-D row kernels for EdgeConv sizes, torch 2.13), so batched features are flattened to rows.
+    2-D row kernels for EdgeConv sizes, torch 2.13), so batched features are flattened to rows. ``n_rows = 0``
+    repeats the index for every batch element (rows of a tensor shared by the batch).
     """
     if n_batch == 1:
         return index
     offsets = torch.arange(n_batch, device=index.device, dtype=index.dtype) * n_rows
     return (index.unsqueeze(0) + offsets.unsqueeze(1)).reshape(-1)
+
+
+def _message_blocks(t: torch.Tensor, buckets):
+    """Per degree bucket, the ``(B, count, degree, c)`` view of a ``(B, M, c)`` per-message tensor."""
+    for d, _, count, m0 in buckets:
+        yield t[:, m0 : m0 + d * count].unflatten(1, (count, d))
+
+
+def _receiver_blocks(t: torch.Tensor, buckets):
+    """Per degree bucket, the ``(B, count, 1, c)`` view of a ``(B, n_r, c)`` per-receiver tensor."""
+    for _, r0, count, _ in buckets:
+        yield t[:, r0 : r0 + count].unsqueeze(2)
 
 
 def _max_backward(
@@ -226,43 +263,86 @@ class _MessagesMax(torch.autograd.Function):
     """The per-edge half of the fast EdgeConv, fused: from per-vertex and per-edge pre-activations to the
     max-aggregated messages, with a hand-written backward.
 
-    ``out[r] = max_{k: receivers[k] = r} (neigh[senders[k]] + W1 relu(pre_vertex[receivers[k]] + edge[k mod E]))``
+    For the directed message k (receiver ``r``, sender ``s``, undirected edge ``e``, batch element ``t``):
+    ``m_k = neigh[t, s] + W1 relu(pre_vertex[t, r] + edge[t, e])``; ``out[t, r] = max_k m_k`` over the
+    messages of ``r``, 0 for a vertex without edges. ``edge`` is ``(B * E, h)``, or ``(E, h)`` shared by the
+    batch (``edge_shared``).
 
-    Same math as composing torch ops, but every large ``(2E, h)`` buffer is reused in place where autograd
-    would allocate a new one (large CPU allocations cost page faults comparable to the arithmetic), and the
-    max gradient is :func:`_max_backward`.
+    Messages are stored grouped by receiver and degree (:class:`_Graph`): the max is a dense reduction per
+    degree block, and its backward a broadcast compare with the block maxima (the gradient goes to the
+    maxima, split evenly among ties, like torch's amax). Every large ``(B * M, h)`` buffer is written once;
+    a scatter-based max with gathers of the maxima costs about twice as much on CPU (torch 2.13).
     """
 
     @staticmethod
-    def forward(ctx, pre_vertex, edge_term, neigh_term, w1, receivers, senders, n_batch, n_winners):
+    def forward(ctx, pre_vertex, edge_term, neigh_term, w1, senders, edge_ids, receivers, buckets, n_batch,
+                edge_shared):
         # One dtype for the in-place arithmetic (under autocast the inputs may mix bfloat16 and float32;
         # autograd casts the returned gradients back to each input's dtype).
         dtype = functools.reduce(torch.promote_types, (pre_vertex.dtype, edge_term.dtype, neigh_term.dtype, w1.dtype))
         pre_vertex, edge_term, neigh_term, w1 = (t.to(dtype) for t in (pre_vertex, edge_term, neigh_term, w1))
-        hid, out_ch = pre_vertex.shape[1], neigh_term.shape[1]
-        hidden = pre_vertex.index_select(0, receivers)
-        hidden.view(n_batch, 2, -1, hid).add_(edge_term.view(n_batch, 1, -1, hid)).relu_()
-        messages = neigh_term.index_select(0, senders).addmm_(hidden, w1.T)
-        out = messages.new_zeros(neigh_term.shape[0], out_ch)
-        out.scatter_reduce_(0, receivers.unsqueeze(1).expand_as(messages), messages, "amax", include_self=False)
-        ctx.save_for_backward(hidden, messages, out, w1, receivers, senders)
-        ctx.n_batch, ctx.n_winners, ctx.n_pre = n_batch, n_winners, pre_vertex.shape[0]
+        n_rows, hid, out_ch = neigh_term.shape[0], pre_vertex.shape[1], neigh_term.shape[1]
+        n, n_msg = n_rows // n_batch, senders.numel()
+        n_edges = edge_term.shape[0] if edge_shared else edge_term.shape[0] // n_batch
+        recv_rows = _flat_rows(receivers, n, n_batch)
+        pre_recv = pre_vertex.index_select(0, recv_rows).view(n_batch, -1, hid)
+        if edge_shared:
+            gathered = edge_term.index_select(0, edge_ids).unsqueeze(0)
+            hidden = gathered if n_batch == 1 else gathered.new_empty(n_batch, n_msg, hid)
+            for h_blk, g_blk, p_blk in zip(_message_blocks(hidden, buckets), _message_blocks(gathered, buckets),
+                                           _receiver_blocks(pre_recv, buckets)):
+                torch.add(g_blk, p_blk, out=h_blk)
+        else:
+            hidden = edge_term.index_select(0, _flat_rows(edge_ids, n_edges, n_batch)).view(n_batch, n_msg, hid)
+            for h_blk, p_blk in zip(_message_blocks(hidden, buckets), _receiver_blocks(pre_recv, buckets)):
+                h_blk.add_(p_blk)
+        hidden = hidden.view(-1, hid).relu_()
+        messages = neigh_term.index_select(0, _flat_rows(senders, n, n_batch)).addmm_(hidden, w1.T)
+        blocks = _message_blocks(messages.view(n_batch, n_msg, out_ch), buckets)
+        maxima = torch.cat([blk.amax(dim=2) for blk in blocks], dim=1)  # (B, n_r, out)
+        out = messages.new_zeros(n_rows, out_ch).index_copy_(0, recv_rows, maxima.view(-1, out_ch))
+        ctx.save_for_backward(hidden, messages, maxima, w1, senders, edge_ids, recv_rows)
+        ctx.buckets, ctx.n_batch, ctx.n_edges, ctx.edge_shared = buckets, n_batch, n_edges, edge_shared
+        ctx.shapes = (pre_vertex.shape[0], n)
         return out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out):
-        hidden, messages, out, w1, receivers, senders = ctx.saved_tensors
-        grad_msg = _max_backward(grad_out, messages, out, receivers, ctx.n_winners)
-        grad_neigh = torch.zeros_like(grad_out).index_add_(0, senders, grad_msg)
+        hidden, messages, maxima, w1, senders, edge_ids, recv_rows = ctx.saved_tensors
+        buckets, n_batch, n_edges = ctx.buckets, ctx.n_batch, ctx.n_edges
+        n_pre, n = ctx.shapes
+        hid, out_ch = hidden.shape[1], messages.shape[1]
+        grad_recv = grad_out.index_select(0, recv_rows).view(n_batch, -1, out_ch)
+        # Winners: a float mask (products and selects with bool masks are 3-8x slower on CPU, torch 2.13).
+        grad_msg = torch.empty_like(messages)
+        msg3, grad3 = messages.view(n_batch, -1, out_ch), grad_msg.view(n_batch, -1, out_ch)
+        for m_blk, g_blk, mx_blk in zip(_message_blocks(msg3, buckets), _message_blocks(grad3, buckets),
+                                        _receiver_blocks(maxima, buckets)):
+            torch.eq(m_blk, mx_blk, out=g_blk)
+        # Ties are counted only when there are more winners than (receiver, channel) pairs, which continuous
+        # data never produces (identical neighbours do).
+        if int(grad_msg.sum()) != maxima.numel():
+            counts = torch.cat([blk.sum(dim=2) for blk in _message_blocks(grad3, buckets)], dim=1)
+            grad_recv = grad_recv / counts.clamp_min(1)
+        for g_blk, go_blk in zip(_message_blocks(grad3, buckets), _receiver_blocks(grad_recv, buckets)):
+            g_blk.mul_(go_blk)
+        grad_neigh = grad_out.new_zeros(grad_out.shape[0], out_ch).index_add_(
+            0, _flat_rows(senders, n, n_batch), grad_msg)
         grad_w1 = grad_msg.T @ hidden
         grad_hidden = grad_msg @ w1
         del grad_msg
         torch.ops.aten.threshold_backward.grad_input(grad_hidden, hidden, 0, grad_input=grad_hidden)
-        hid = hidden.shape[1]
-        grad_edge = grad_hidden.view(ctx.n_batch, 2, -1, hid).sum(1).view(-1, hid)
-        grad_pre = grad_hidden.new_zeros(ctx.n_pre, hid).index_add_(0, receivers, grad_hidden)
-        return grad_pre, grad_edge, grad_neigh, grad_w1, None, None, None, None
+        if ctx.edge_shared:
+            grad_edge = grad_hidden.new_zeros(n_edges, hid).index_add_(0, _flat_rows(edge_ids, 0, n_batch),
+                                                                        grad_hidden)
+        else:
+            grad_edge = grad_hidden.new_zeros(n_batch * n_edges, hid).index_add_(
+                0, _flat_rows(edge_ids, n_edges, n_batch), grad_hidden)
+        grad_h3 = grad_hidden.view(n_batch, -1, hid)
+        grad_recv_pre = torch.cat([blk.sum(dim=2) for blk in _message_blocks(grad_h3, buckets)], dim=1)
+        grad_pre = grad_hidden.new_zeros(n_pre, hid).index_copy_(0, recv_rows, grad_recv_pre.view(-1, hid))
+        return grad_pre, grad_edge, grad_neigh, grad_w1, None, None, None, None, None, None
 
 
 def max_aggregate(values: torch.Tensor, receivers: torch.Tensor, n_verts: int) -> torch.Tensor:
@@ -375,43 +455,71 @@ class EdgeConv(nn.Module):
         out = out.scatter_reduce(0, index, messages, reduce="amax", include_self=False)
         return out.view(*batch, n, self.out_channels)
 
-    def _forward_fast(self, x: torch.Tensor, graph: _Graph, shared: torch.Tensor | None) -> torch.Tensor:
-        """Restructured EdgeConv (module docstring, items 1-4); same function as the reference."""
-        a, b = graph.a, graph.b
-        batch, (n, c) = x.shape[:-2], x.shape[-2:]
-        n_batch = math.prod(batch)
-        cu = c + self.shared_channels
+    def _forward_fast(
+        self,
+        x: torch.Tensor,
+        graph: _Graph,
+        shared: torch.Tensor | None,
+        offset: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Restructured EdgeConv (module docstring, items 1-6); same function as the reference.
+
+        ``x (..., n, c)`` and ``shared (..., s)`` with ``c + s`` the layer's input width: the split between
+        per-vertex and shared channels may differ from the constructor's (channels constant over the vertices
+        may be passed as shared ones). With ``offset (B, c)``, ``x (n, c)`` is a base shared by the batch and
+        batch element b sees ``x + offset[b]`` (item 6).
+        """
         blk = self.block
+        if offset is None:
+            batch, (n, c) = x.shape[:-2], x.shape[-2:]
+        else:
+            batch, (n, c) = offset.shape[:-1], x.shape
+        n_batch = math.prod(batch)
+        n_shared = 0 if shared is None else shared.shape[-1]
+        cu = c + n_shared
+        if cu != self.in_channels + self.shared_channels:
+            raise ConfigError(f"EdgeConv expects {self.in_channels + self.shared_channels} channels, got {cu}")
         w_short = blk.shortcut_weight()
         w_sa, w_sb = w_short[:, :cu], w_short[:, cu:]
         w0a, w0b = blk.fc0.weight[:, :cu], blk.fc0.weight[:, cu:]
         out_ch, hid = self.out_channels, blk.hidden_channels
-        x2 = x.reshape(n_batch * n, c)
 
         # Per-vertex products: one GEMM for x (both shortcut halves and -W0b), one for relu(x).
         stacked = torch.cat((w_sa[:, :c] - w_sb[:, :c], w_sb[:, :c], -w0b[:, :c]), dim=0)
-        self_term, neigh_term, pre_vertex = torch.split(x2 @ stacked.T, (out_ch, out_ch, hid), dim=-1)
-        pre_vertex = torch.addmm(pre_vertex + blk.fc0.bias, F.relu(x2), w0a[:, :c].T)
+        if offset is None:
+            x2 = x.reshape(n_batch * n, c)
+            self_term, neigh_term, pre_vertex = torch.split(x2 @ stacked.T, (out_ch, out_ch, hid), dim=-1)
+            pre_vertex = torch.addmm(pre_vertex + blk.fc0.bias, F.relu(x2), w0a[:, :c].T)
+            edge_src, edge_shared = x2, False
+        else:
+            # u_b = x + o_b: the shortcut halves are linear (base product once, plus a row per batch element);
+            # max(u_i, u_j) - u_i = max(x_i, x_j) - x_i does not depend on o_b, so the -W0b term and the edge
+            # term use the base only; only relu(u_b) needs every batch element.
+            prod = x @ stacked.T
+            rows = offset.reshape(n_batch, 1, c) @ stacked[: 2 * out_ch].T
+            self_term = (prod[:, :out_ch] + rows[..., :out_ch]).reshape(-1, out_ch)
+            neigh_term = (prod[:, out_ch : 2 * out_ch] + rows[..., out_ch:]).reshape(-1, out_ch)
+            relu_u = F.relu(x + offset.reshape(n_batch, 1, c))
+            pre_vertex = (relu_u @ w0a[:, :c].T + (prod[:, 2 * out_ch :] + blk.fc0.bias)).reshape(-1, hid)
+            edge_src, edge_shared = x, True
         # fc1's bias is the same for every message of a vertex: it moves out of the max.
         self_term = self_term + blk.fc1.bias
         if shared is not None:
             # s_j - s_i = 0: the shared channels act through w_sa (the w_sb parts of u_i and u_j cancel) and
             # through the relu(u_i) half of fc0 only.
-            s2 = shared.reshape(n_batch, 1, self.shared_channels)
+            s2 = shared.reshape(n_batch, 1, n_shared)
             self_term = (self_term.view(n_batch, n, out_ch) + s2 @ w_sa[:, c:].T).view(-1, out_ch)
             pre_vertex = (pre_vertex.view(n_batch, n, hid) + F.relu(s2) @ w0a[:, c:].T).view(-1, hid)
 
         # fc0 of the message i <- j is W0a relu(x_i) + W0b relu(x_j - x_i) + b0, and relu(x_j - x_i) + x_i =
         # max(x_i, x_j): it equals pre_vertex_i + W0b max(x_i, x_j), whose per-edge part is symmetric in
         # (i, j): one GEMM per undirected edge serves both directions.
-        fa, fb = _flat_rows(a, n, n_batch), _flat_rows(b, n, n_batch)
-        edge_term = _GatherMax.apply(x2, fa, fb) @ w0b[:, :c].T
-        # Directed messages in the order: all (receiver a <- sender b), then all (b <- a), per batch element.
-        receivers = _flat_rows(torch.cat((a, b)), n, n_batch)
-        senders = _flat_rows(torch.cat((b, a)), n, n_batch)
-        n_winners = n_batch * out_ch * graph.n_receiving
+        n_src = 1 if edge_shared else n_batch
+        fa, fb = _flat_rows(graph.a, n, n_src), _flat_rows(graph.b, n, n_src)
+        edge_term = _GatherMax.apply(edge_src, fa, fb) @ w0b[:, :c].T
         aggregated = _MessagesMax.apply(
-            pre_vertex, edge_term, neigh_term, blk.fc1.weight, receivers, senders, n_batch, n_winners
+            pre_vertex, edge_term, neigh_term, blk.fc1.weight, graph.senders, graph.edge_ids, graph.receivers,
+            graph.buckets, n_batch, edge_shared,
         )
         # A vertex without edges gets 0 (no message), not its shortcut term.
         out = aggregated.view(n_batch, n, out_ch) + self_term.view(n_batch, n, out_ch) * graph.has_edge.to(x.dtype)
@@ -488,4 +596,49 @@ class ResnetEC(nn.Module):
             else:
                 pooled = net.amax(dim=-1, keepdim=True).expand_as(net)
                 net = layer._apply_graph(torch.cat((net, p, pooled), dim=-1), graph, None, fast)
+        return self.fc_out(F.relu(net))
+
+    def forward_separable(
+        self, p_static: torch.Tensor, p_batch: torch.Tensor, edges: torch.Tensor, fast: bool = True
+    ) -> torch.Tensor:
+        """Run the network on a batch whose inputs differ only in channels constant over the vertices.
+
+        Batch element b gets the per-vertex input ``[p_static, p_batch[b]]`` (the last ``p_batch.shape[1]``
+        input channels equal ``p_batch[b]`` at every vertex), e.g. NeuroMorph's interpolator, whose inputs
+        ``[x, Pi y - x, t]`` differ between time steps only in ``t``. Same result as :meth:`forward` on the
+        concatenated input; with ``fast`` and global pooling, the work that does not depend on b runs once
+        (module docstring, item 6).
+
+        Parameters
+        ----------
+        p_static : (n, c_s) float
+        p_batch : (B, c_b) float
+            ``c_s + c_b = in_channels``.
+        edges : (E, 2) int64
+        fast : bool
+
+        Returns
+        -------
+        (B, n, out_channels) float
+        """
+        if p_static.ndim != 2 or p_batch.ndim != 2 or p_static.shape[1] + p_batch.shape[1] != self.in_channels:
+            raise ConfigError(
+                f"ResnetEC expects p_static (n, c_s) and p_batch (B, c_b) with c_s + c_b = {self.in_channels}, "
+                f"got {tuple(p_static.shape)} and {tuple(p_batch.shape)}"
+            )
+        (n, c_s), n_b = p_static.shape, p_batch.shape[0]
+        if not fast or self.pool != "global":
+            p = torch.cat((p_static.expand(n_b, n, c_s), p_batch.unsqueeze(1).expand(n_b, n, -1)), dim=-1)
+            return self.forward(p, edges, fast=fast)
+        graph = _edge_index(edges, n, p_static.device)
+        # fc_pos([p_static, p_batch[b]]) = (W_s p_static + bias) + W_b p_batch[b]: a base plus a row per b.
+        base = F.linear(p_static, self.fc_pos.weight[:, :c_s], self.fc_pos.bias)
+        offset = p_batch @ self.fc_pos.weight[:, c_s:].T
+        net = self.blocks[0]._forward_fast(base, graph, None, offset=offset)
+        p_static_b = p_static.expand(n_b, n, c_s)
+        for layer in self.blocks[1:]:
+            # Layer input [net, p_static, p_batch] + pooled: p_batch is constant over the vertices, so it
+            # joins the shared channels (same channel order, hence the same weights).
+            shared = torch.cat((p_batch, net.amax(dim=-2)), dim=-1)
+            net = layer._forward_fast(torch.cat((net, p_static_b), dim=-1), graph, shared)
         return self.fc_out(F.relu(net))

@@ -155,10 +155,10 @@ class NeuroMorphInterpolator(nn.Module):
             raise ConfigError(f"times must be a non-empty 1-D tensor, got shape {tuple(times.shape)}")
         _check_finite(verts_x, "interpolator input vertices")
         _check_finite(target_x, "interpolator target positions")
-        n_t, n = times.shape[0], verts_x.shape[0]
-        per_vertex = torch.cat((verts_x, target_x - verts_x), dim=-1).expand(n_t, n, 6)
-        t = times.to(verts_x).view(n_t, 1, 1).expand(n_t, n, 1)
-        disp = self.net(torch.cat((per_vertex, t), dim=-1), edges, fast=fast)
+        # The inputs of the time steps differ only in the t channel: the network runs the t-independent work
+        # once (ResnetEC.forward_separable).
+        per_vertex = torch.cat((verts_x, target_x - verts_x), dim=-1)
+        disp = self.net.forward_separable(per_vertex, times.to(verts_x).unsqueeze(1), edges, fast=fast)
         _check_finite(disp, "interpolator output (diverged weights?)")
         return disp
 

@@ -27,7 +27,8 @@ from shapecorr.eval.export import read_times
 REPO = Path(__file__).resolve().parents[2]
 NAMES = ["p0", "p1", "p2"]
 N_PAIRS = len(NAMES) * (len(NAMES) - 1)
-INTERP_KEYS = ("mean_deformation_conformal_distortion", "mean_chamfer", "mean_chamfer_one_sided", "n_pairs_interpolated")
+INTERP_KEYS = ("mean_deformation_conformal_distortion", "mean_chamfer", "mean_chamfer_one_sided",
+               "n_pairs_interpolated")
 BLEND = ["model=linear_blend", "model.matcher.descriptor=hks"]
 
 

@@ -1,0 +1,298 @@
+"""NeuroMorph LightningModule: training step, geodesic lookups, queries and interpolation, configs, CLI smoke run.
+
+The pair is built in memory: a 642-vertex icosphere stretched into an ellipsoid with a bump, and a bent,
+vertex-permuted copy (x's vertex i is y's vertex perm[i]). Networks are shrunk (16 channels, 2 EdgeConv
+layers) except in the CLI run, which uses the configured model on a 4-shape folder dataset written by the test.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+
+import shapecorr.models.neuromorph as nm
+from shapecorr.data.augmentation import PairAugmenter, cached_remesh, remeshed_sample
+from shapecorr.data.cache import ShapeCache
+from shapecorr.data.datasets import PairSample, ShapeSample
+from shapecorr.data.shape import make_shape
+from shapecorr.errors import ConfigError
+from shapecorr.losses.weighted import WeightedLoss
+from shapecorr.models.neuromorph import NeuroMorph, interpolation_strip_figure, log_interpolation
+from shapecorr.models.schedules import EpochSchedule, LossWeightSchedule
+
+REPO = Path(__file__).resolve().parents[2]
+SMALL = dict(feature_dim=16, hidden_channels=16, n_blocks=2)
+FINAL_LINE = re.compile(r"^test geodesic error: (\d+\.\d+) \(fraction of sqrt\(area\)\) over (\d+) pairs$")
+
+pytestmark = pytest.mark.filterwarnings("ignore:You are trying to `self.log\\(\\)`", "ignore::DeprecationWarning")
+
+
+def _base_mesh():
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    v, f = np.asarray(mesh.vertices) * [1.4, 1.0, 0.7], np.asarray(mesh.faces)
+    v[:, 1] += 0.3 * np.exp(-4.0 * ((v[:, 0] - 0.5) ** 2 + v[:, 2] ** 2))
+    return v, f
+
+
+def _sample(verts, faces, name, corres) -> ShapeSample:
+    shape = make_shape(verts, faces, name)
+    n = shape.n_verts
+    return ShapeSample(shape=shape, evals=torch.zeros(0), evecs=torch.zeros(n, 0), mass=torch.ones(n),
+                       corres=torch.as_tensor(corres, dtype=torch.int64))
+
+
+@pytest.fixture(scope="module")
+def pair():
+    v, f = _base_mesh()
+    perm = np.random.default_rng(0).permutation(len(v))
+    bent = v.copy()
+    bent[:, 2] += 0.25 * np.sin(1.5 * bent[:, 0])
+    vy = np.empty_like(bent)
+    vy[perm] = bent
+    return PairSample(_sample(v, f, "x", np.arange(len(v))), _sample(vy, perm[f], "y", perm))
+
+
+class LossSpy:
+    """Wraps the model's WeightedLoss and records what each call received and returned."""
+
+    def __init__(self, loss: WeightedLoss):
+        self.inner, self.calls = loss, []
+
+    @property
+    def weights(self):
+        return self.inner.weights
+
+    def set_weight(self, name, weight):
+        self.inner.set_weight(name, weight)
+
+    def __call__(self, **inputs):
+        total, values = self.inner(**inputs)
+        self.calls.append((inputs, total.detach(), {k: v.detach() for k, v in values.items()}))
+        return total, values
+
+
+def _model(tmp_path, **kwargs) -> NeuroMorph:
+    torch.manual_seed(0)
+    options = dict(SMALL, cache_dir=str(tmp_path), augment=dict(resolution=[200, 400], variants=2))
+    return NeuroMorph(**{**options, **kwargs})
+
+
+def test_training_step_finite_loss_and_gradients_reach_both_networks(pair, tmp_path):
+    model = _model(tmp_path, n_intermediate=3)
+    spy = model.loss = LossSpy(model.loss)
+    loss = model.training_step(pair, 0)
+    assert loss.dim() == 0 and torch.isfinite(loss) and loss > 0
+    inputs, total, values = spy.calls[-1]
+    assert set(values) == {"registration", "arap", "geo"}
+    expected = float(values["registration"]) + float(values["arap"]) + 50.0 * float(values["geo"])
+    assert float(total) == pytest.approx(expected, rel=1e-5)
+    assert inputs["frames"].shape[0] == 3 + 2  # x, then X(t_i) for t = 1/4, 1/2, 3/4, 1
+    n_x = inputs["frames"].shape[1]
+    assert 190 <= n_x <= 410 and inputs["dist_x"].shape == (n_x, n_x)  # a remesh from the pool, with its geodesics
+    torch.testing.assert_close(inputs["edge_weights"].unique(), torch.tensor([2.0]))  # closed mesh: 2 faces per edge
+    loss.backward()
+    for name, p in model.named_parameters():
+        assert p.grad is not None and torch.isfinite(p.grad).all(), name
+    for net in (model.feature_net, model.interpolator):
+        assert sum(float(p.grad.abs().sum()) for p in net.parameters()) > 0
+    # the same step (same seed, epoch, batch index) draws the same augmentation
+    again = model.training_step(pair, 0)
+    assert float(again.detach()) == pytest.approx(float(loss.detach()), rel=1e-6)
+    assert len(list((tmp_path / "remesh").rglob("*.npz"))) <= 4
+
+
+def test_geodesics_are_skipped_while_lambda_geo_is_zero(pair, tmp_path, monkeypatch):
+    model = _model(tmp_path)
+    spy = model.loss = LossSpy(model.loss)
+    model.loss.set_weight("geo", 0.0)
+    assert model.lambda_geo == 0.0
+
+    def forbidden(self, sample):
+        raise AssertionError("geodesics looked up with lambda_geo = 0")
+
+    monkeypatch.setattr(PairAugmenter, "distances", forbidden)
+    loss = model.training_step(pair, 1)
+    assert torch.isfinite(loss)
+    inputs, _, values = spy.calls[-1]
+    assert set(values) == {"registration", "arap"} and "dist_x" not in inputs
+    assert inputs["frames"].shape[0] == 2  # T = 0: [x, X(1)]
+    assert not (tmp_path / "geodesics").exists()
+
+
+def test_interpolate_frames_maps_and_extrapolation(pair, tmp_path):
+    model = _model(tmp_path, match_chunk_size=100).eval()  # several chunks: the chunked query equals the full one
+    x, y = pair.x, pair.y
+    times = torch.tensor([0.0, 0.5, 1.0, 1.5, 2.0])
+    result = model.interpolate(x, y, times)
+    result.validate(x.shape.n_verts, y.shape.n_verts)
+    assert result.deformation.shape == (5, x.shape.n_verts, 3)
+    assert torch.equal(result.deformation[0], x.verts)  # exactly x at t = 0
+    torch.testing.assert_close(result.times, times)
+    assert not torch.allclose(result.deformation[4], result.deformation[2])  # t = 2 goes beyond t = 1
+    with torch.no_grad():
+        full = model.forward_pair(x, y, times)
+    torch.testing.assert_close(result.deformation, full["frames"], rtol=1e-5, atol=1e-5)
+    assert torch.equal(result.p2p, full["pi_x_to_y"].argmax(1))
+    assert torch.equal(result.p2p_inv, full["pi_y_to_x"].argmax(1))
+    match = model.match(x, y)
+    torch.testing.assert_close(match.times, torch.tensor(nm.DEFAULT_EVAL_TIMES))
+    assert match.deformation.shape == (len(nm.DEFAULT_EVAL_TIMES), x.shape.n_verts, 3)
+    assert torch.equal(match.p2p, result.p2p)
+    for bad in ([], [0.0, float("nan")], [[0.0, 1.0]]):
+        with pytest.raises(ConfigError):
+            model.interpolate(x, y, bad)
+
+
+def test_query_resolution_runs_on_a_remesh_and_carries_back(pair, tmp_path, monkeypatch):
+    model = _model(tmp_path, query_resolution=300).eval()
+    calls = []
+    monkeypatch.setattr(nm, "cached_remesh", lambda *a: calls.append(a[3]) or cached_remesh(*a))
+    x, y = pair.x, pair.y
+    times = torch.tensor([0.0, 1.0, 1.25])
+    result = model.interpolate(x, y, times)
+    result.validate(x.shape.n_verts, y.shape.n_verts)
+    assert calls == [300, 300]
+    assert torch.equal(result.deformation[0], x.verts)
+    # oracle: the same network on the remeshed pair, carried back by hand
+    cache = ShapeCache(tmp_path)
+    rx, ry = cached_remesh(cache, x.verts, x.faces, 300), cached_remesh(cache, y.verts, y.faces, 300)
+    small = _plain_copy(model).interpolate(remeshed_sample(x, rx), remeshed_sample(y, ry), times)
+    nearest_x, source_y = torch.from_numpy(rx.nearest_vertex), torch.from_numpy(ry.source_vertex)
+    assert torch.equal(result.p2p, source_y[small.p2p[nearest_x]])
+    assert torch.equal(result.p2p_inv, torch.from_numpy(rx.source_vertex)[small.p2p_inv[torch.from_numpy(ry.nearest_vertex)]])
+    expected = x.verts + rx.lift(small.deformation - torch.from_numpy(rx.verts))
+    torch.testing.assert_close(result.deformation, expected)
+    model.interpolate(x, y, times)
+    assert calls == [300, 300]  # in-memory LRU: no second lookup
+
+
+def _plain_copy(model: NeuroMorph) -> NeuroMorph:
+    copy = NeuroMorph(**SMALL, cache_dir=model.cache_dir).eval()
+    copy.load_state_dict(model.state_dict())
+    return copy
+
+
+def test_options_are_validated(tmp_path):
+    NeuroMorph(**SMALL, num_samples=3, layer={"k": 1}, val_refine_levels=2, num_eigs=4)  # shared run-config keys
+    for bad in (dict(typo_option=1), dict(lr=0.0), dict(sigma=-1.0), dict(query_resolution=2),
+                dict(arap_edge_weight_scale=0.0), dict(augment=dict(axis="q")), dict(eval_times=[]),
+                dict(loss={"not": "a loss"}), dict(n_intermediate=-1), dict(n_intermediate=1.5)):
+        with pytest.raises(ConfigError):
+            NeuroMorph(**SMALL, **bad)
+    model = NeuroMorph(**SMALL)
+    model.n_intermediate = 7
+    assert model.n_intermediate == 7
+    with pytest.raises(ConfigError):
+        model.n_intermediate = -2
+    assert "loss" not in model.hparams and model.hparams["pool"] == "global"
+
+
+def test_schedule_callbacks_drive_the_module(tmp_path):
+    model = NeuroMorph(**SMALL)
+    EpochSchedule("n_intermediate", [[0, 0], [300, 1], [450, 3], [525, 7]]).apply(model, 460)
+    LossWeightSchedule("geo", [[0, 50.0], [300, 0.0]]).apply(model, 460)
+    assert model.n_intermediate == 3 and model.lambda_geo == 0.0
+
+
+def _compose(overrides):
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        return compose("train", overrides=overrides)
+
+
+def test_configs_compose_with_the_published_settings(tmp_path):
+    cfg = _compose(["model=neuromorph", "debug=tiny", f"paths.cache_dir={tmp_path}", f"paths.output_dir={tmp_path}"])
+    model = instantiate(cfg.model, _convert_="object")
+    assert isinstance(model, NeuroMorph) and model.loss.weights == {"registration": 1.0, "arap": 1.0, "geo": 50.0}
+    assert model.sigma == 100.0 and model.lr == 1e-4 and model.augment.resolution == (200, 2000)
+    callbacks = {name: instantiate(node, _convert_="object") for name, node in cfg.callbacks.items()}
+    assert callbacks["neuromorph_T"].schedule.values == [0, 1, 3, 7]
+    assert callbacks["neuromorph_T"].schedule.epochs == [0, 300, 450, 525]
+    assert callbacks["neuromorph_lambda_geo"].schedule.epochs == [0, 300]
+    exp = _compose(["experiment=neuromorph_faust_r", f"paths.cache_dir={tmp_path}", f"paths.output_dir={tmp_path}",
+                    f"data.root={tmp_path}"])
+    assert exp.model._target_ == "shapecorr.models.neuromorph.NeuroMorph" and exp.model.query_resolution == 2000
+    assert exp.trainer.accumulate_grad_batches == 16 and exp.trainer.max_epochs == 600
+    assert exp.trainer.check_val_every_n_epoch == 10 and exp.checkpoint.every_n_epochs == 10
+    assert exp.data.pairs.train.include_self and exp.data.splits.train.index_range == [0, 80]
+    assert list(exp.callbacks.neuromorph_T.milestones) == [[0, 0], [300, 1], [450, 3], [525, 7]]
+
+
+def test_log_interpolation_writes_meshes_and_a_strip(pair, tmp_path):
+    from torch.utils.tensorboard import SummaryWriter
+
+    x, y = pair.x, pair.y
+    frames = torch.stack([x.verts, x.verts * 1.1, x.verts * 1.2])
+    times = torch.tensor([0.0, 0.5, 1.0])
+    assert len(interpolation_strip_figure(frames, x.faces, times, y.verts, y.faces).axes) == 4
+    writer = SummaryWriter(str(tmp_path))
+    assert log_interpolation(writer, frames, x.faces, times, y.verts, y.faces, step=3)
+    writer.close()
+    assert list(tmp_path.glob("events.out.tfevents.*"))
+    assert not log_interpolation(None, frames, x.faces, times)
+    with pytest.raises(ConfigError):
+        interpolation_strip_figure(frames, x.faces, times[:2])
+
+
+# -- CLI smoke run -------------------------------------------------------------------------------------------
+def _write_off(path: Path, verts: np.ndarray, faces: np.ndarray) -> None:
+    lines = ["OFF", f"{len(verts)} {len(faces)} 0"]
+    lines += [" ".join(f"{c:.6f}" for c in v) for v in verts]
+    lines += ["3 " + " ".join(str(int(i)) for i in f) for f in faces]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _folder_dataset(root: Path) -> None:
+    """Four deformed, vertex-permuted ellipsoids with .vts ground truth; train a, b; test c, d."""
+    v, f = _base_mesh()
+    rng = np.random.default_rng(1)
+    for sub in ("off", "corres", "splits"):
+        (root / sub).mkdir(parents=True)
+    for k, name in enumerate("abcd"):
+        perm = rng.permutation(len(v))
+        posed = v.copy()
+        posed[:, 2] += 0.2 * np.sin((1.0 + 0.3 * k) * posed[:, 0])
+        verts = np.empty_like(posed)
+        verts[perm] = posed
+        _write_off(root / "off" / f"{name}.off", verts, perm[f])
+        (root / "corres" / f"{name}.vts").write_text("\n".join(str(i + 1) for i in perm) + "\n")
+    (root / "splits" / "train.txt").write_text("a\nb\n")
+    (root / "splits" / "test.txt").write_text("c\nd\n")
+
+
+def test_train_cli_tiny_smoke_run(tmp_path):
+    data, run_dir = tmp_path / "data", tmp_path / "run"
+    _folder_dataset(data)
+    args = ["model=neuromorph", "debug=tiny", "data=folder", f"data.root={data}", "~data.synthetic",
+            "data.operators.n_eig=16", "data.prepare_workers=1", f"paths.cache_dir={tmp_path / 'cache'}",
+            f"hydra.run.dir={run_dir}", "trainer.limit_train_batches=2", "trainer.limit_val_batches=1",
+            "trainer.limit_test_batches=2", "+trainer.num_sanity_val_steps=0", "trainer.enable_progress_bar=false",
+            "model.augment.resolution=[300,500]", "model.augment.variants=2"]
+    env = {**os.environ, "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, str(REPO / "train.py"), *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=600, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = [line for line in proc.stdout.strip().splitlines() if line.strip()]
+    match = FINAL_LINE.match(lines[-1])
+    assert match, proc.stdout[-2000:]
+    assert 0.0 <= float(match.group(1)) < 1.0 and int(match.group(2)) == 2
+    last = run_dir / "checkpoints" / "last.ckpt"
+    assert last.is_file() and list((run_dir / "tensorboard").glob("events.out.tfevents.*"))
+    state = torch.load(last, map_location="cpu", weights_only=False)
+    assert state["global_step"] == 2 and state["hyper_parameters"]["augment"]["variants"] == 2
+    # the evaluation path: load_from_checkpoint (default loss) and query a pair
+    model = NeuroMorph.load_from_checkpoint(str(last), map_location="cpu").eval()
+    assert model.loss.weights["geo"] == 50.0
+    v, f = _base_mesh()
+    x = _sample(v, f, "a", np.arange(len(v)))
+    assert model.match(x, x).p2p.shape == (len(v),)
+    assert len(list((tmp_path / "cache" / "remesh").rglob("*.npz"))) <= 4  # 2 train shapes x 2 variants
