@@ -1,12 +1,20 @@
-"""Speed and memory of one NeuroMorph training step on CPU (or any device), ~2000 vertices per shape.
+"""Speed and memory of NeuroMorph on CPU (or any device), ~2000 vertices per shape: training steps and queries.
 
-One step = features of both shapes (forward), softmax soft maps, interpolator for T + 1 time steps,
+One training step = features of both shapes (forward), softmax soft maps, interpolator for T + 1 time steps,
 registration + ARAP (both directions between consecutive frames) + geodesic distortion losses, backward.
-Measured for T = 0 and T = 7, each in a fresh subprocess (so peak memory is per configuration), as the
-median of ``--repeats`` steps after ``--warmup`` steps, for two variants in the same run:
+One query (``--queries``) = what ``NeuroMorph.match`` does, without gradients: features of both shapes, the
+hard maps both ways (chunked argmax), the soft target ``Pi y`` and the interpolator at the five evaluation
+times 0, 0.25, 0.5, 0.75, 1. Training is measured for T = 0 and T = 7, each configuration in a fresh
+subprocess (so peak memory is per configuration), as the median of ``--repeats`` steps after ``--warmup``
+steps, for these variants in the same run:
 
-* ``fast``: the shapecorr implementation (restructured EdgeConv on deduplicated edges, custom backward of
-  the geodesic loss, detached ARAP rotations, "both-sides" ARAP);
+* ``fast``: the shapecorr implementation (restructured EdgeConv on deduplicated edges, the interpolator's
+  time-independent work once for all time steps, custom backwards of the max aggregation, the softmax pair
+  and the geodesic loss (block-symmetric ``Pi D Pi^T``), detached ARAP rotations, "both-sides" ARAP, the
+  registration loss sharing the interpolator's ``Pi y``);
+* ``baseline`` (with ``--baseline-src DIR``): the ``fast`` step run on the shapecorr package found in DIR
+  (e.g. ``git worktree add /tmp/before <commit>``; only keyword options it has are used): a before/after
+  comparison on the same machine in the same run;
 * ``naive``: the same model evaluated the way the original code does it: per-edge EdgeConv MLP on the
   face-listed edges (every interior edge twice per direction) with torch's scatter autograd, the geodesic
   loss through plain autograd, "average" ARAP differentiated through the SVD with ``2 * face counts``
@@ -20,23 +28,26 @@ triangulations, like independently remeshed shapes); with ``--faust-root`` (or `
 FAUST_r shapes decimated to ~2000 vertices instead. Geodesic matrices: heat method
 (``shapecorr.geometry.geodesics``), only their size matters for the timing.
 
-The machine is shared: wall-clock medians are reported together with the process CPU time per step and
-the load average before and after, so that contention is visible. Every configuration runs with torch's
-thread count(s) from ``--threads`` and, with ``--malloc no-mmap``, with glibc told to keep freed large
-blocks (``MALLOC_MMAP_THRESHOLD_``/``MALLOC_TRIM_THRESHOLD_``): by default every large CPU tensor is a fresh
-``mmap`` whose pages fault in on first touch, which costs as much as the arithmetic at T = 7.
+The machine may be shared: every result records the wall-clock median, the process CPU time (all threads)
+per step, per-stage wall and CPU times, and the load average before and after its subprocess, so that
+contention is visible; CPU times are the fairer comparison on a loaded machine. Every configuration runs
+with torch's thread count(s) from ``--threads`` and, with ``--malloc no-mmap``, with glibc told to keep freed
+large blocks (``MALLOC_MMAP_THRESHOLD_``/``MALLOC_TRIM_THRESHOLD_``; in a running process,
+``mallopt(M_MMAP_THRESHOLD)``/``mallopt(M_TRIM_THRESHOLD)`` do the same): by default every large CPU tensor is a
+fresh ``mmap`` whose pages fault in on first touch, which costs about as much as the arithmetic at T = 7.
 
 Usage::
 
     python benchmarks/neuromorph_speed.py [--threads 2 1] [--repeats 5] [--naive-repeats 2] [--faust-root DIR]
-        [--variants fast naive fast_bf16] [--malloc default no-mmap]
-        [--out benchmarks/results/neuromorph_speed.json]
+        [--variants fast baseline naive fast_bf16] [--baseline-src DIR] [--malloc default no-mmap]
+        [--queries 5] [--out benchmarks/results/neuromorph_speed.json]
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime as dt
+import inspect
 import json
 import os
 import platform
@@ -58,7 +69,7 @@ from shapecorr.geometry.mesh_graph import undirected_edges
 from shapecorr.losses.arap import arap_sequence_loss
 from shapecorr.losses.geodesic_distortion import geodesic_distortion_loss
 from shapecorr.losses.registration import registration_loss
-from shapecorr.matching.softmax import DEFAULT_SIGMA, softmax_soft_maps
+from shapecorr.matching.softmax import DEFAULT_SIGMA, hard_maps, softmax_soft_maps
 from shapecorr.nn.neuromorph import NeuroMorphFeatureNet, NeuroMorphInterpolator, interpolation_times
 
 #: Target number of vertices (NeuroMorph trains on 2000-vertex FAUST_r remeshes, methods-digest §4.1).
@@ -74,6 +85,8 @@ TARGET_SECONDS = {0: 0.5, 7: 1.7}
 #: Stages timed inside a step (forward parts, then the whole backward pass).
 STAGES = ("feature_nets_fwd", "softmax_fwd", "interpolator_fwd", "registration_arap_fwd", "geodesic_fwd",
           "backward")
+#: Frame times of a query (NeuroMorph.match's default eval_times, configs/model/neuromorph.yaml).
+QUERY_TIMES = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: glibc settings that keep freed large blocks instead of returning them to the OS (no page faults on reuse).
 GLIBC_NO_MMAP_ENV = {"MALLOC_MMAP_THRESHOLD_": str(2**34), "MALLOC_TRIM_THRESHOLD_": str(2**34)}
 
@@ -118,17 +131,64 @@ def _naive_geodesic(pi, dist_x, dist_y):
     return (pi @ dist_y @ pi.T - dist_x).square().mean()
 
 
-def run_single(args) -> dict:
-    """One (variant, T) configuration: returns timings and peak memory of this process."""
-    torch.set_num_threads(args.threads)
-    torch.manual_seed(0)
-    cache = Path(args.cache)
+def _load_pair(cache: Path):
     data = np.load(cache)
     shapes = []
     for key in ("x", "y"):
         s = make_shape(data[f"verts_{key}"], data[f"faces_{key}"], key)
         shapes.append((s.verts, s.faces, torch.from_numpy(data[f"dist_{key}"]).float()))
-    (vx, fx, dx), (vy, fy, dy) = shapes
+    return shapes
+
+
+def _medians(samples: dict) -> dict:
+    return {k: statistics.median(v) for k, v in samples.items()}
+
+
+def run_query(args) -> dict:
+    """Seconds per query (no gradients) and peak memory of this process."""
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    (vx, fx, _), (vy, fy, _) = _load_pair(Path(args.cache))
+    edges_x, edges_y = undirected_edges(fx), undirected_edges(fy)
+    feat_net, interp = NeuroMorphFeatureNet(), NeuroMorphInterpolator()
+    times = torch.tensor(QUERY_TIMES)
+    rss_setup = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
+    @torch.no_grad()
+    def query():
+        feat_x, feat_y = feat_net(vx, fx, edges_x), feat_net(vy, fy, edges_y)
+        p2p, p2p_inv = hard_maps(feat_x, feat_y, normalize=False)
+        target = torch.softmax(DEFAULT_SIGMA * (feat_x @ feat_y.T), dim=1) @ vy
+        return p2p, p2p_inv, interp.interpolate(vx, target, edges_x, times)
+
+    for _ in range(args.warmup):
+        query()
+    wall, cpu = [], []
+    load_before = os.getloadavg()
+    for _ in range(args.repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        query()
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return {
+        "variant": args.variant,
+        "seconds_per_query_median": statistics.median(wall),
+        "seconds_per_query_all": wall,
+        "cpu_seconds_per_query_median": statistics.median(cpu),
+        "peak_rss_mib": peak / 1024.0,
+        "peak_rss_above_setup_mib": (peak - rss_setup) / 1024.0,
+        "load_average_before_after": [load_before, os.getloadavg()],
+        "n_verts": [int(vx.shape[0]), int(vy.shape[0])],
+        "query_times": list(QUERY_TIMES),
+    }
+
+
+def run_single(args) -> dict:
+    """One (variant, T) training configuration: returns timings and peak memory of this process."""
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    (vx, fx, dx), (vy, fy, dy) = _load_pair(Path(args.cache))
     naive = args.variant == "naive"
     edges_x, counts_x = undirected_edges(fx, return_counts=True)
     edges_y = undirected_edges(fy)
@@ -139,43 +199,54 @@ def run_single(args) -> dict:
     params = list(feat_net.parameters()) + list(interp.parameters())
     times = interpolation_times(args.steps)
     rss_setup = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    # Keyword options of the code under test (the baseline may predate some of them).
+    share_target = not naive and "soft_target" in inspect.signature(registration_loss).parameters
 
     autocast = args.variant == "fast_bf16"
 
-    def step(parts):
+    def step(parts, cpu_parts):
         for p in params:
             p.grad = None
         fast = not naive
-        marks = [time.perf_counter()]
+        marks, cpu_marks = [time.perf_counter()], [time.process_time()]
+
+        def mark():
+            marks.append(time.perf_counter())
+            cpu_marks.append(time.process_time())
+
         with torch.autocast(device_type=vx.device.type, dtype=torch.bfloat16, enabled=autocast):
             feat_x = feat_net(vx, fx, conv_edges_x, fast=fast).float()
             feat_y = feat_net(vy, fy, conv_edges_y, fast=fast).float()
-        marks.append(time.perf_counter())
+        mark()
         pi, pi_inv = softmax_soft_maps(feat_x, feat_y, sigma=DEFAULT_SIGMA, normalize=False)
         target = pi @ vy
-        marks.append(time.perf_counter())
+        mark()
         with torch.autocast(device_type=vx.device.type, dtype=torch.bfloat16, enabled=autocast):
             frames = interp.interpolate(vx, target, conv_edges_x, times, fast=fast).float()
-        marks.append(time.perf_counter())
-        reg = registration_loss(frames[-1], vy, pi, pi_inv)
+        mark()
+        extra = {"soft_target": target} if share_target else {}
+        reg = registration_loss(frames[-1], vy, pi, pi_inv, **extra)
         arap = arap_sequence_loss(
             torch.cat((vx.unsqueeze(0), frames)), edges_x, arap_weights,
             mode="average" if naive else "both-sides", detach_rotations=not naive,
         )
-        marks.append(time.perf_counter())
+        mark()
         geo = _naive_geodesic(pi, dx, dy) if naive else geodesic_distortion_loss(pi, dx, dy)
-        marks.append(time.perf_counter())
+        mark()
         (reg + arap + geo).backward()
-        marks.append(time.perf_counter())
+        mark()
         for name, t0, t1 in zip(STAGES, marks[:-1], marks[1:]):
             parts.setdefault(name, []).append(t1 - t0)
+        for name, t0, t1 in zip(STAGES, cpu_marks[:-1], cpu_marks[1:]):
+            cpu_parts.setdefault(name, []).append(t1 - t0)
 
     for _ in range(args.warmup):
-        step({})
-    wall, cpu, parts = [], [], {}
+        step({}, {})
+    wall, cpu, parts, cpu_parts = [], [], {}, {}
+    load_before = os.getloadavg()
     for _ in range(args.repeats):
         t0, c0 = time.perf_counter(), time.process_time()
-        step(parts)
+        step(parts, cpu_parts)
         wall.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -185,9 +256,12 @@ def run_single(args) -> dict:
         "seconds_per_step_median": statistics.median(wall),
         "seconds_per_step_all": wall,
         "cpu_seconds_per_step_median": statistics.median(cpu),
-        "stage_seconds_median": {k: statistics.median(v) for k, v in parts.items()},
+        "cpu_seconds_per_step_all": cpu,
+        "stage_seconds_median": _medians(parts),
+        "stage_cpu_seconds_median": _medians(cpu_parts),
         "peak_rss_mib": peak / 1024.0,
         "peak_rss_above_setup_mib": (peak - rss_setup) / 1024.0,
+        "load_average_before_after": [load_before, os.getloadavg()],
         "n_verts": [int(vx.shape[0]), int(vy.shape[0])],
         "n_undirected_edges": [int(edges_x.shape[0]), int(edges_y.shape[0])],
     }
@@ -213,51 +287,17 @@ def _prepare(args) -> dict:
     return source
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--threads", type=int, nargs="+", default=[2, 1], help="torch thread counts to run")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--warmup", type=int, default=1)
-    parser.add_argument("--steps", type=int, nargs="+", default=[0, 7], help="values of T")
-    parser.add_argument("--variants", nargs="+", default=["fast", "naive", "fast_bf16"],
-                        choices=["fast", "naive", "fast_bf16"])
-    parser.add_argument("--malloc", nargs="+", default=["default", "no-mmap"], choices=["default", "no-mmap"],
-                        help="glibc malloc settings to run: as is, and/or MALLOC_MMAP_THRESHOLD_/"
-                             "MALLOC_TRIM_THRESHOLD_ raised (only the 'fast' variant runs with both)")
-    parser.add_argument("--naive-repeats", type=int, default=2,
-                        help="repeats of the (slow) naive reference; its median gives the speed-up ratio")
-    parser.add_argument("--faust-root", default=None)
-    parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "neuromorph_speed.json"))
-    parser.add_argument("--cache", default="/tmp/shapecorr_neuromorph_speed.npz")
-    parser.add_argument("--single", action="store_true", help=argparse.SUPPRESS)
-    parser.add_argument("--variant", default="fast", help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
-    if args.single:
-        args.steps, args.threads = args.steps[0], args.threads[0]
-        print(json.dumps(run_single(args)))
-        return
+def _subprocess(args, variant: str, steps: int, threads: int, repeats: int, malloc: str, mode: str) -> dict:
+    cmd = [sys.executable, __file__, mode, "--variant", variant, "--steps", str(steps), "--threads", str(threads),
+           "--repeats", str(repeats), "--warmup", str(args.warmup), "--cache", args.cache]
+    env = dict(os.environ, **(GLIBC_NO_MMAP_ENV if malloc == "no-mmap" else {}))
+    if variant == "baseline":
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, (args.baseline_src, env.get("PYTHONPATH"))))
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
+    return dict(json.loads(out.strip().splitlines()[-1]), threads=threads, malloc=malloc)
 
-    source = _prepare(args)
-    load_before = os.getloadavg()
-    results = []
-    for threads in args.threads:
-        for steps in args.steps:
-            for variant in args.variants:
-                for malloc in args.malloc:
-                    if variant != "fast" and malloc != "default":
-                        continue  # the malloc comparison is for the main variant only
-                    repeats = args.naive_repeats if variant == "naive" else args.repeats
-                    cmd = [sys.executable, __file__, "--single", "--variant", variant, "--steps", str(steps),
-                           "--threads", str(threads), "--repeats", str(repeats), "--warmup",
-                           str(args.warmup), "--cache", args.cache]
-                    env = dict(os.environ, **(GLIBC_NO_MMAP_ENV if malloc == "no-mmap" else {}))
-                    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
-                    res = dict(json.loads(out.strip().splitlines()[-1]), threads=threads, malloc=malloc)
-                    results.append(res)
-                    print(f"threads={threads} T={steps} {variant:9s} malloc={malloc:7s}: "
-                          f"{res['seconds_per_step_median']:.3f} s/step (cpu {res['cpu_seconds_per_step_median']:.3f}"
-                          f" s), peak RSS {res['peak_rss_mib']:.0f} MiB", flush=True)
-    load_after = os.getloadavg()
+
+def _summary(args, results, queries) -> dict:
     summary = {}
     for threads in args.threads:
         for steps in args.steps:
@@ -267,18 +307,87 @@ def main(argv=None) -> None:
                 entry = {}
                 if "fast" in by:
                     entry["fast_seconds"] = by["fast"]["seconds_per_step_median"]
+                    entry["fast_cpu_seconds"] = by["fast"]["cpu_seconds_per_step_median"]
+                    entry["fast_peak_rss_mib"] = by["fast"]["peak_rss_mib"]
                     if steps in TARGET_SECONDS:
                         entry["target_seconds"] = TARGET_SECONDS[steps]
                         entry["meets_target"] = entry["fast_seconds"] <= TARGET_SECONDS[steps]
                     if steps == 0:
                         entry["speedup_vs_original_5s"] = ORIGINAL_SECONDS_T0 / entry["fast_seconds"]
-                if "fast_bf16" in by:
-                    entry["fast_bf16_seconds"] = by["fast_bf16"]["seconds_per_step_median"]
-                if "fast" in by and "naive" in by and malloc == "default":
-                    naive_s, fast_s = by["naive"]["seconds_per_step_median"], by["fast"]["seconds_per_step_median"]
-                    entry["naive_seconds"] = naive_s
-                    entry["speedup_vs_naive_same_run"] = naive_s / fast_s
-                summary[f"threads={threads} T={steps} malloc={malloc}"] = entry
+                for other in ("baseline", "naive", "fast_bf16"):
+                    if other in by:
+                        entry[f"{other}_seconds"] = by[other]["seconds_per_step_median"]
+                        entry[f"{other}_cpu_seconds"] = by[other]["cpu_seconds_per_step_median"]
+                        if "fast" in by and other != "fast_bf16":
+                            entry[f"speedup_vs_{other}_same_run"] = (
+                                by[other]["seconds_per_step_median"] / by["fast"]["seconds_per_step_median"])
+                            entry[f"cpu_speedup_vs_{other}_same_run"] = (
+                                by[other]["cpu_seconds_per_step_median"] / by["fast"]["cpu_seconds_per_step_median"])
+                if entry:
+                    summary[f"threads={threads} T={steps} malloc={malloc}"] = entry
+        for q in queries:
+            if q["threads"] == threads:
+                summary[f"threads={threads} query {q['variant']} malloc={q['malloc']}"] = {
+                    "seconds_per_query": q["seconds_per_query_median"],
+                    "cpu_seconds_per_query": q["cpu_seconds_per_query_median"],
+                    "peak_rss_mib": q["peak_rss_mib"],
+                }
+    return summary
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--threads", type=int, nargs="+", default=[2, 1], help="torch thread counts to run")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--warmup", type=int, default=1)
+    parser.add_argument("--steps", type=int, nargs="+", default=[0, 7], help="values of T")
+    parser.add_argument("--variants", nargs="+", default=["fast", "baseline", "naive", "fast_bf16"],
+                        choices=["fast", "baseline", "naive", "fast_bf16"])
+    parser.add_argument("--baseline-src", default=None,
+                        help="folder holding an older shapecorr package (the 'baseline' variant; skipped without)")
+    parser.add_argument("--malloc", nargs="+", default=["default", "no-mmap"], choices=["default", "no-mmap"],
+                        help="glibc malloc settings to run: as is, and/or MALLOC_MMAP_THRESHOLD_/"
+                             "MALLOC_TRIM_THRESHOLD_ raised (only the 'fast' variant runs with both)")
+    parser.add_argument("--naive-repeats", type=int, default=2,
+                        help="repeats of the (slow) naive reference; its median gives the speed-up ratio")
+    parser.add_argument("--queries", type=int, default=5, help="repeats of the query timing (0: skip)")
+    parser.add_argument("--faust-root", default=None)
+    parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "neuromorph_speed.json"))
+    parser.add_argument("--cache", default="/tmp/shapecorr_neuromorph_speed.npz")
+    parser.add_argument("--single", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--single-query", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--variant", default="fast", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.single or args.single_query:
+        args.steps, args.threads = args.steps[0], args.threads[0]
+        print(json.dumps(run_query(args) if args.single_query else run_single(args)))
+        return
+    variants = [v for v in args.variants if v != "baseline" or args.baseline_src]
+
+    source = _prepare(args)
+    load_before = os.getloadavg()
+    results, queries = [], []
+    for threads in args.threads:
+        for steps in args.steps:
+            for variant in variants:
+                for malloc in args.malloc:
+                    if variant != "fast" and malloc != "default":
+                        continue  # the malloc comparison is for the main variant only
+                    repeats = args.naive_repeats if variant == "naive" else args.repeats
+                    res = _subprocess(args, variant, steps, threads, repeats, malloc, "--single")
+                    results.append(res)
+                    print(f"threads={threads} T={steps} {variant:9s} malloc={malloc:7s}: "
+                          f"{res['seconds_per_step_median']:.3f} s/step (cpu {res['cpu_seconds_per_step_median']:.3f}"
+                          f" s), peak RSS {res['peak_rss_mib']:.0f} MiB, load {res['load_average_before_after'][0][0]:.1f}",
+                          flush=True)
+        if args.queries:
+            for variant in [v for v in variants if v in ("fast", "baseline")]:
+                res = _subprocess(args, variant, 0, threads, args.queries, "default", "--single-query")
+                queries.append(res)
+                print(f"threads={threads} query {variant:9s}: {res['seconds_per_query_median']:.3f} s/query (cpu "
+                      f"{res['cpu_seconds_per_query_median']:.3f} s), peak RSS {res['peak_rss_mib']:.0f} MiB", flush=True)
+    load_after = os.getloadavg()
+    summary = _summary(args, results, queries)
     report = {
         "benchmark": "neuromorph_speed",
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
@@ -290,12 +399,17 @@ def main(argv=None) -> None:
         "software": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__},
         "data": source,
         "protocol": {"warmup": args.warmup, "repeats": args.repeats, "naive_repeats": args.naive_repeats,
-                     "statistic": "median wall-clock seconds per step",
+                     "query_repeats": args.queries, "baseline_src": args.baseline_src,
+                     "statistic": "median wall-clock seconds per step (and median process CPU seconds, all threads)",
                      "step": "feature net on x and y, softmax, interpolator (T+1 frames), registration + ARAP + "
-                             "geodesic losses, backward"},
-        "units": {"seconds_per_step_median": "s", "peak_rss_mib": "MiB (process peak resident set size)"},
+                             "geodesic losses, backward",
+                     "query": "no gradients: feature net on x and y, hard maps both ways, Pi y, interpolator at "
+                              f"times {list(QUERY_TIMES)}"},
+        "units": {"seconds_per_step_median": "s", "cpu_seconds_per_step_median": "s (process CPU time)",
+                  "seconds_per_query_median": "s", "peak_rss_mib": "MiB (process peak resident set size)"},
         "summary": summary,
         "results": results,
+        "queries": queries,
     }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(report, indent=2) + "\n")

@@ -6,9 +6,12 @@
 
 Options: ``configs/train.yaml``. Steps: seed everything; build the data module and the model
 (``hydra.utils.instantiate``); add the model's ``required_operators`` to the data; fit with checkpoints
-(``<run>/checkpoints``: ``last.ckpt`` plus one every ``checkpoint.every_n_epochs`` epochs) and the logger of the
-``logger`` group under the Hydra run directory; with ``test=true`` run the test split on the final weights and
-print ``test geodesic error: <mean> (fraction of sqrt(area)) over <N> pairs`` as the last line.
+(``<run>/checkpoints``: ``last.ckpt`` plus one every ``checkpoint.every_n_epochs`` epochs, or every
+``checkpoint.every_n_train_steps`` optimizer steps when that is set) and the logger of the ``logger`` group under
+the Hydra run directory; with ``test=true`` run the test split on the final weights and print
+``test geodesic error: <mean> (fraction of sqrt(area)) over <N> pairs`` as the last line. Options Lightning rejects
+(its MisconfigurationException, while building the trainer and callbacks or once fitting starts) end as a
+ConfigError: ``error: <message>`` and exit status 2, without a traceback.
 """
 
 from __future__ import annotations
@@ -48,7 +51,8 @@ def checkpoint_callback(cfg: DictConfig, out_dir: Path) -> ModelCheckpoint:
     """The ModelCheckpoint of ``cfg.checkpoint``: ``last.ckpt`` plus periodic ones.
 
     ``every_n_train_steps`` (mid-epoch checkpoints every N optimizer steps) replaces ``every_n_epochs`` when both
-    are set (Lightning accepts only one of them); ``0`` or ``null`` for both keeps only ``last.ckpt``.
+    are set (Lightning accepts only one of them); ``0`` or ``null`` for both keeps only ``last.ckpt`` (written at
+    the end of fitting; Lightning's own default for two nulls would be every epoch).
 
     Raises
     ------
@@ -57,7 +61,7 @@ def checkpoint_callback(cfg: DictConfig, out_dir: Path) -> ModelCheckpoint:
     """
     ck = cfg.checkpoint
     every_n_steps = ck.get("every_n_train_steps")
-    every_n_epochs = None if every_n_steps else ck.get("every_n_epochs")
+    every_n_epochs = None if every_n_steps else (ck.get("every_n_epochs") or 0)
     try:
         return ModelCheckpoint(
             dirpath=str(out_dir / CHECKPOINT_DIR),
@@ -111,6 +115,9 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         trainer = _instantiate(cfg.trainer, "trainer", callbacks=build_callbacks(cfg, out_dir), logger=logger)
     except OmegaConfBaseException as err:
         raise user_config_error(err) from err
+    if not any(p.requires_grad for p in model.parameters()):
+        raise ConfigError(f"{type(model).__name__} has no trainable parameters with these options (e.g. "
+                          "model.backbone=identity): nothing to train; evaluate it with evaluate.py instead")
     required = dict(getattr(model, "required_operators", {}) or {})
     if required:
         dm.with_operators(**required)

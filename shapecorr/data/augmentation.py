@@ -18,15 +18,17 @@ ours moves vertices, so every remesh carries its correspondence to the shape it 
   the barycentric coordinates of that closest point, to carry a per-vertex field (a displacement) from the
   remesh back to the original by linear interpolation.
 
-A bounded pool. Remeshing (~1 s of CPU at 2000 vertices) and the geodesic matrix of a remesh (~2 s) are
-cached with :class:`~shapecorr.data.cache.ShapeCache`, keyed by the content of the shape, the target
-resolution and the remesher settings. To keep that cache finite, each shape has a fixed pool of
-``variants`` resolutions (default 8), drawn once from the configured range by a generator seeded with
-``(seed, content hash of the shape)``, without replacement; a training step picks one pool entry per
-shape. The remesher is deterministic, so the resolution identifies the remesh and the key needs no variant
-number. Worst case on disk: ``shapes x variants`` remeshes (+ their geodesic matrices, 16 MB each at 2000
-vertices: 80 FAUST_r shapes x 8 = 640 entries, ~10 GB with geodesics). The range is clipped to the shape's
-own vertex count (never upsampled: the original only decimated).
+A bounded pool. Remeshing a 5k-vertex FAUST_r shape (~1 s of CPU) and the geodesic matrix of a
+2000-vertex remesh (~1.6 s) are cached with :class:`~shapecorr.data.cache.ShapeCache`, keyed by the content
+of the shape, the target resolution and the remesher settings. To keep that cache finite, each shape has a
+fixed pool of ``variants`` resolutions (default 8), drawn once from the configured range by a generator
+seeded with ``(seed, content hash of the shape)``, without replacement; a training step picks one pool entry
+per shape. The remesher is deterministic, so the resolution identifies the remesh and the key needs no
+variant number. On disk: at most ``shapes x variants`` remeshes (~100 kB each) plus, while the geodesic
+loss is on, their geodesic matrices (float32, 16 MB at 2000 vertices, ~6 MB on average over 200..2000:
+~4 GB for the 640 entries of 80 FAUST_r shapes x 8). The first epoch fills the pool (~30 min of CPU for
+FAUST_r). The range is clipped to the shape's own vertex count (never upsampled: the original only
+decimated).
 
 Rotation: an angle drawn uniformly in [0, 2 pi) about the configured axis, applied to both shapes (after
 the geodesics are looked up, which do not depend on it).
@@ -35,8 +37,9 @@ the geodesics are looked up, which do not depend on it).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from typing import Any, Mapping
+from typing import Any
 
 import igl
 import numpy as np
@@ -48,7 +51,12 @@ from shapecorr.data.datasets import PairSample, ShapeSample
 from shapecorr.data.operators import geodesics_cached
 from shapecorr.data.shape import Shape, triangle_areas
 from shapecorr.errors import ConfigError, NumericalError
-from shapecorr.geometry.remeshing import REMESH_ITERATIONS, REMESH_MAX_ROUNDS, REMESH_RTOL, remesh
+from shapecorr.geometry.remeshing import (
+    REMESH_ITERATIONS,
+    REMESH_MAX_ROUNDS,
+    REMESH_RTOL,
+    remesh,
+)
 
 #: Version of the cached remeshes (bump when remeshing or the stored correspondence changes).
 REMESH_CACHE_VERSION = 1
@@ -234,7 +242,7 @@ def remeshed_sample(sample: ShapeSample, remeshed: Remeshed) -> ShapeSample:
     mass = np.bincount(remeshed.faces.ravel(), np.repeat(triangle_areas(remeshed.verts, remeshed.faces) / 3.0, 3),
                        minlength=m)
     nearest = torch.from_numpy(remeshed.nearest_vertex)
-    carry = lambda c: None if c is None else nearest[c.detach().cpu()]  # noqa: E731
+    carry = lambda c: None if c is None else nearest[c.detach().cpu()]
     shape = sample.shape
     return ShapeSample(
         shape=Shape(verts=verts, faces=faces, name=f"{shape.name}@{m}", path=shape.path, scale=shape.scale,
@@ -345,13 +353,14 @@ class AugmentationConfig:
             raise ConfigError(f"augment.axis must be one of {sorted(AXES)}, got {self.axis!r}")
 
     @classmethod
-    def from_options(cls, options: Mapping[str, Any] | "AugmentationConfig" | None) -> "AugmentationConfig":
+    def from_options(cls, options: Mapping[str, Any] | AugmentationConfig | None) -> AugmentationConfig:
         if isinstance(options, cls):
             return options
         options = dict(options or {})
         unknown = set(options) - set(cls.__dataclass_fields__)
         if unknown:
-            raise ConfigError(f"unknown augment option(s) {sorted(unknown)}; allowed: {sorted(cls.__dataclass_fields__)}")
+            allowed = sorted(cls.__dataclass_fields__)
+            raise ConfigError(f"unknown augment option(s) {sorted(unknown)}; allowed: {allowed}")
         return cls(**options)
 
 
@@ -381,7 +390,7 @@ class AugmentedPair:
 
 def _geometry_only(sample: ShapeSample) -> ShapeSample:
     """CPU copy of a sample without its eigenbasis and descriptors (augmented shapes carry none)."""
-    move = lambda t: None if t is None else t.detach().cpu()  # noqa: E731
+    move = lambda t: None if t is None else t.detach().cpu()
     shape = sample.shape.to("cpu")
     return ShapeSample(shape=shape, evals=torch.zeros(0), evecs=torch.zeros(shape.n_verts, 0),
                        mass=move(sample.mass), features={}, corres=move(sample.corres),

@@ -84,7 +84,7 @@ class _GeodesicDistortionSymmetric(torch.autograd.Function):
             # Off-diagonal blocks stand for themselves and their mirror images: counted twice.
             total += 2.0 * torch.vdot(panel.reshape(-1), panel.reshape(-1)) - diag.square().sum()
             panels.append(panel)
-        ctx.save_for_backward(pi, dist_y, pulled, *panels)
+        ctx.save_for_backward(pi, pulled, *panels)
         ctx.bounds = bounds
         return (total + const) / (n * n)
 
@@ -99,7 +99,7 @@ class _GeodesicDistortionSymmetric(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
-        pi, dist_y, pulled, *panels = ctx.saved_tensors
+        pi, pulled, *panels = ctx.saved_tensors
         bounds, n = ctx.bounds, pi.shape[0]
         scale = float(grad) * 2.0 / (n * n)
         grad_pi = grad_dx = grad_dy = None

@@ -29,6 +29,7 @@ def registration_loss(
     pi_x_to_y: torch.Tensor,
     pi_y_to_x: torch.Tensor,
     reduction: str = "original",
+    soft_target: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Two-way alignment of a deformed x with y through soft maps.
 
@@ -43,6 +44,11 @@ def registration_loss(
         Row-stochastic soft map y -> x.
     reduction : {"original", "mean", "sum"}
         Normalization, see the module docstring.
+    soft_target : (n_x, 3) float, optional
+        ``pi_x_to_y @ verts_y`` when the caller already has it (NeuroMorph's interpolator target): reusing
+        the same tensor saves an ``n_x x n_y`` product, and in the backward pass the two uses add their
+        ``(n_x, 3)`` gradients before the single ``n_x x n_y`` gradient product. Not checked against the
+        soft map.
 
     Returns
     -------
@@ -57,7 +63,11 @@ def registration_loss(
             f"soft maps must be ({n_x}, {n_y}) and ({n_y}, {n_x}) for {n_x} and {n_y} vertices, got "
             f"{tuple(pi_x_to_y.shape)} and {tuple(pi_y_to_x.shape)}"
         )
-    term_x = (pi_x_to_y @ verts_y - verts_x_deformed).square().sum()
+    if soft_target is None:
+        soft_target = pi_x_to_y @ verts_y
+    elif soft_target.shape != verts_x_deformed.shape:
+        raise ConfigError(f"soft_target must have shape {tuple(verts_x_deformed.shape)}, got {tuple(soft_target.shape)}")
+    term_x = (soft_target - verts_x_deformed).square().sum()
     term_y = (verts_y - pi_y_to_x @ verts_x_deformed).square().sum()
     if reduction == "original":
         loss = (ORIGINAL_ALIGN_NUMERATOR / n_x) * (term_x + term_y)

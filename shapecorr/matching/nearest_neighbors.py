@@ -5,8 +5,10 @@ point of X its nearest point of Y in the product-space embedding and vice versa.
 
 Backends:
 
-- ``"kdtree"``: scipy's ``cKDTree`` in float64 (exact), one tree per side, queries in parallel threads.
-  Fast for the low-dimensional embeddings of coarse levels.
+- ``"kdtree"``: scipy's ``cKDTree`` in float64 (exact), one tree per side; with ``workers`` other than 1
+  the two directions (tree builds included) run in two threads, each querying with half of the workers.
+  The embeddings of the shell refinements are intrinsically 2-D surfaces, so the trees prune well even in
+  hundreds of dimensions: faster than blocked brute force on CPUs up to the 505-D top level (measured).
 - ``"brute"``: blocked exact search with torch on the tensors' device (CPU or GPU): distance blocks from one
   matrix product each, both directions from the same blocks (row argmin per block, running column minimum).
   Never holds more than ``block_size * m`` distances.
@@ -17,6 +19,9 @@ float64 unless ``exact=False``, so both backends return the same neighbours up t
 """
 
 from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -41,14 +46,33 @@ def _check(emb_x: torch.Tensor, emb_y: torch.Tensor) -> None:
         raise NumericalError("nearest neighbours: the embedding contains NaN or Inf")
 
 
+def _nearest(points: np.ndarray, queries: np.ndarray, workers: int) -> np.ndarray:
+    _, nn = cKDTree(points).query(queries, k=1, workers=workers)
+    return np.asarray(nn, dtype=np.int64)
+
+
 def _kdtree(emb_x: torch.Tensor, emb_y: torch.Tensor, workers: int) -> tuple[torch.Tensor, torch.Tensor]:
     x = emb_x.detach().to("cpu", torch.float64).numpy()
     y = emb_y.detach().to("cpu", torch.float64).numpy()
-    _, nn_y = cKDTree(y).query(x, k=1, workers=workers)
-    _, nn_x = cKDTree(x).query(y, k=1, workers=workers)
+    threads = _available_cores() if workers == -1 else max(1, int(workers))
+    if threads >= 2:
+        # scipy releases the GIL while building and querying, so the two directions (tree build included,
+        # which `workers` does not parallelize) run concurrently, each with half of the query threads.
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            job = pool.submit(_nearest, x, y, threads - threads // 2)  # for each point of Y, one of X
+            nn_y = _nearest(y, x, threads // 2)  # for each point of X, the nearest of Y
+            nn_x = job.result()
+    else:
+        nn_y, nn_x = _nearest(y, x, 1), _nearest(x, y, 1)
     device = emb_x.device
-    return (torch.from_numpy(np.asarray(nn_y, dtype=np.int64)).to(device),
-            torch.from_numpy(np.asarray(nn_x, dtype=np.int64)).to(device))
+    return torch.from_numpy(nn_y).to(device), torch.from_numpy(nn_x).to(device)
+
+
+def _available_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
 
 
 def _brute(emb_x: torch.Tensor, emb_y: torch.Tensor, block_size: int, exact: bool):

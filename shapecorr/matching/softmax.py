@@ -11,9 +11,18 @@ with ``sigma = 100`` hard-coded in the original code. ``sigma`` multiplies the s
 since the softmax is monotone they are the argmax of ``S`` by rows and by columns, so
 :func:`hard_maps` never forms the softmax and works in chunks.
 
-Memory. :func:`softmax_soft_maps` holds ``S``, ``Pi`` and ``Pi_inv``: three ``n_x * n_y`` matrices (16 MB each
-in float32 at 2000 x 2000, 400 MB each at 10k x 10k), and autograd keeps the two softmax outputs for the
-backward pass. :func:`hard_maps` needs only ``chunk_size * n_y``.
+Both maps from one exponential. ``Pi`` normalizes ``exp(sigma S)`` by rows, ``Pi_inv^T`` by columns, so with
+one global shift ``m = max(sigma S)`` a single ``E = exp(sigma S - m)`` serves both: ``Pi = E / rowsum(E)``,
+``Pi_inv = (E / colsum(E))^T``. ``Pi_inv`` is returned as that transposed view (strides ``(1, n_y)``), which
+matrix products read for free; the hand-written backward never forms a transposed copy either (plain
+autograd adds the two gradients of S through a transposed n^2 copy). Mathematically this is the softmax
+(any shift cancels); numerically it needs every row and column to keep a non-negligible mass under the
+global shift: when a row or column sum of E falls below ``n * tiny / eps`` of the dtype (its entries would
+lose precision to underflow), the two maps are computed as two separately shifted softmaxes instead.
+
+Memory. :func:`softmax_soft_maps` holds ``Pi`` and ``Pi_inv``: two ``n_x * n_y`` matrices (16 MB each in
+float32 at 2000 x 2000, 400 MB each at 10k x 10k), kept for the backward pass. :func:`hard_maps` needs only
+``chunk_size * n_y``.
 """
 
 from __future__ import annotations
@@ -88,15 +97,83 @@ def softmax_soft_maps(
     pi_x_to_y : (n_x, n_y) float
         Row-stochastic soft map x -> y.
     pi_y_to_x : (n_y, n_x) float
-        Row-stochastic soft map y -> x.
+        Row-stochastic soft map y -> x; usually a transposed view of an ``(n_x, n_y)`` buffer (module
+        docstring): call ``.contiguous()`` before ``.view()``.
     """
     if not sigma > 0:
         raise ConfigError(f"softmax sigma must be positive, got {sigma}")
-    scores = sigma * cosine_similarity(feat_x, feat_y, normalize=normalize)
+    _check_features(feat_x, feat_y)
+    if normalize:
+        feat_x = F.normalize(feat_x, dim=-1, eps=FEATURE_NORM_EPS)
+        feat_y = F.normalize(feat_y, dim=-1, eps=FEATURE_NORM_EPS)
+    maps = _SoftmaxBothWays.apply(feat_x, feat_y, float(sigma))
+    if maps is not None:
+        return maps
+    # A row or a column would underflow under the global shift: two separately shifted softmaxes.
+    scores = (sigma * feat_x) @ feat_y.T
     pi_x_to_y = torch.softmax(scores, dim=1)
     # Row softmax of S^T (a column softmax of S, then .T, is ~2x slower on CPU: strided reductions).
     pi_y_to_x = torch.softmax(scores.T, dim=1)
     return pi_x_to_y, pi_y_to_x
+
+
+def _min_safe_sum(n: int, dtype: torch.dtype) -> float:
+    """Smallest row/column sum of ``E`` for which the shared-shift softmax keeps full precision (module
+    docstring): the largest entry is then at least ``tiny / eps``, so entries down to ``eps`` times it are
+    normal numbers."""
+    info = torch.finfo(dtype)
+    return n * info.tiny / info.eps
+
+
+class _SoftmaxBothWays(torch.autograd.Function):
+    """``Pi = softmax_rows(sigma F_x F_y^T)`` and ``Pi_inv = softmax_rows(sigma F_y F_x^T)`` from one
+    exponential (module docstring); returns None (nothing to differentiate) when the shared shift would
+    underflow a row or a column.
+
+    Backward, with ``Q = Pi_inv^T`` and upstream gradients ``G1 (n_x, n_y)``, ``G2 (n_y, n_x)``:
+    ``dL/d(sigma S) = Pi * (G1 - rowdot(G1, Pi)) + Q * (G2^T - coldot(G2^T, Q))``, then
+    ``dL/dF_x = sigma (dL/d(sigma S)) F_y`` and ``dL/dF_y = sigma (dL/d(sigma S))^T F_x``.
+    """
+
+    @staticmethod
+    def forward(ctx, feat_x, feat_y, sigma):
+        ctx.set_materialize_grads(False)
+        expo = (sigma * feat_x) @ feat_y.T
+        expo.sub_(expo.max()).exp_()
+        row_sum, col_sum = expo.sum(dim=1, keepdim=True), expo.sum(dim=0, keepdim=True)
+        n_x, n_y = expo.shape
+        if (float(row_sum.min()) < _min_safe_sum(n_y, expo.dtype)
+                or float(col_sum.min()) < _min_safe_sum(n_x, expo.dtype)):
+            return None
+        pi = expo / row_sum
+        q = expo.div_(col_sum)  # Pi_inv^T, column-stochastic
+        ctx.save_for_backward(feat_x, feat_y, pi, q)
+        ctx.sigma = sigma
+        return pi, q.T
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_pi, grad_pi_inv):
+        feat_x, feat_y, pi, q = ctx.saved_tensors
+        grad_scores = None
+        if grad_pi is not None:
+            # Pi * (G1 - rowdot(G1, Pi)) = Pi * G1 - Pi * rowsum(Pi * G1)
+            grad_scores = grad_pi * pi
+            grad_scores.addcmul_(pi, grad_scores.sum(dim=1, keepdim=True), value=-1.0)
+        if grad_pi_inv is not None:
+            g2 = grad_pi_inv.T  # (n_x, n_y); contiguous when it comes from a product with the transposed view
+            part = g2 * q
+            col_dot = part.sum(dim=0, keepdim=True)
+            grad_scores = part if grad_scores is None else grad_scores.add_(part)
+            grad_scores.addcmul_(q, col_dot, value=-1.0)
+        if grad_scores is None:
+            return None, None, None
+        grad_x = grad_y = None
+        if ctx.needs_input_grad[0]:
+            grad_x = (grad_scores @ feat_y).mul_(ctx.sigma)
+        if ctx.needs_input_grad[1]:
+            grad_y = (grad_scores.T @ feat_x).mul_(ctx.sigma)
+        return grad_x, grad_y, None
 
 
 def soft_map_to_p2p(soft_map: torch.Tensor) -> torch.Tensor:

@@ -192,7 +192,7 @@ class DeepShells(CorrespondenceModule):
                               "model=deep_shells_published set SHAPECORR_DEEP_SHELLS_WEIGHTS)", path=path)
         try:
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # torch raises several unrelated types for unreadable/unsafe files
+        except Exception as exc:  # noqa: BLE001 - torch raises several unrelated types for unreadable/unsafe files
             raise ConfigError(f"deep_shells: not a readable torch checkpoint ({type(exc).__name__}: {exc})",
                               path=path) from None
         if isinstance(ckpt, dict) and LIGHTNING_STATE_KEY in ckpt:

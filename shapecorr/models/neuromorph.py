@@ -45,14 +45,22 @@ rotation at test time (the original rotated test pairs randomly as well).
 
 from __future__ import annotations
 
+import functools
 from collections import OrderedDict
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
 from matplotlib.figure import Figure
 
-from shapecorr.data.augmentation import AugmentationConfig, PairAugmenter, Remeshed, cached_remesh, remeshed_sample
+from shapecorr.data.augmentation import (
+    AugmentationConfig,
+    PairAugmenter,
+    Remeshed,
+    cached_remesh,
+    remeshed_sample,
+)
 from shapecorr.data.cache import ShapeCache, content_hash, default_cache_root
 from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.eval.protocol import score_deformation
@@ -62,7 +70,12 @@ from shapecorr.losses.geodesic_distortion import geodesic_distortion_loss
 from shapecorr.losses.registration import registration_loss
 from shapecorr.losses.weighted import WeightedLoss
 from shapecorr.matching.result import MatchResult
-from shapecorr.matching.softmax import DEFAULT_CHUNK_SIZE, DEFAULT_SIGMA, hard_maps, softmax_soft_maps
+from shapecorr.matching.softmax import (
+    DEFAULT_CHUNK_SIZE,
+    DEFAULT_SIGMA,
+    hard_maps,
+    softmax_soft_maps,
+)
 from shapecorr.models.base import CorrespondenceModule
 from shapecorr.nn.edgeconv import DEFAULT_HIDDEN, DEFAULT_N_BLOCKS
 from shapecorr.nn.neuromorph import (
@@ -71,7 +84,14 @@ from shapecorr.nn.neuromorph import (
     NeuroMorphInterpolator,
     interpolation_times,
 )
-from shapecorr.viz.render import PANEL_SIZE, RENDER_DPI, DEFAULT_VIEW, coordinate_colors, draw_mesh, figure_to_rgb
+from shapecorr.viz.render import (
+    DEFAULT_VIEW,
+    PANEL_SIZE,
+    RENDER_DPI,
+    coordinate_colors,
+    draw_mesh,
+    figure_to_rgb,
+)
 from shapecorr.viz.tensorboard import summary_writer
 
 #: NeuroMorph optimizer: Adam, learning rate 1e-4, no scheduler (methods-digest §4.6).
@@ -98,8 +118,6 @@ TARGET_GRAY = 0.7
 
 def default_loss() -> WeightedLoss:
     """The published NeuroMorph loss: registration 1, ARAP 1 (both-sides, detached rotations), geodesic 50."""
-    import functools
-
     return WeightedLoss({
         "registration": {"fn": registration_loss, "weight": DEFAULT_LOSS_WEIGHTS["registration"]},
         "arap": {"fn": functools.partial(arap_sequence_loss, displacement_weight=NEUROMORPH_DISPLACEMENT_WEIGHT),
@@ -190,7 +208,8 @@ class NeuroMorph(CorrespondenceModule):
         if not sigma > 0:
             raise ConfigError(f"neuromorph: sigma must be positive, got {sigma}")
         if arap_edge_weight_scale is not None and not arap_edge_weight_scale > 0:
-            raise ConfigError(f"neuromorph: arap_edge_weight_scale must be positive or null, got {arap_edge_weight_scale}")
+            raise ConfigError(
+                f"neuromorph: arap_edge_weight_scale must be positive or null, got {arap_edge_weight_scale}")
         if query_resolution is not None and int(query_resolution) < 4:
             raise ConfigError(f"neuromorph: query_resolution must be >= 4 or null, got {query_resolution}")
         if int(match_chunk_size) < 1:
@@ -391,7 +410,7 @@ class NeuroMorph(CorrespondenceModule):
         times = result.times.detach().cpu()
         keep = torch.nonzero((times >= 0) & (times <= UNIT_TIME)).flatten()
         keep = keep[torch.argsort(times[keep])]
-        frames, kept_times = result.deformation[keep], times[keep]
+        frames, kept_times = result.deformation[keep.to(result.deformation.device)], times[keep]
         if not bool((kept_times == UNIT_TIME).any()):
             extra = self.interpolate(batch.x, batch.y, torch.tensor([UNIT_TIME]))
             frames = torch.cat((frames, extra.deformation))

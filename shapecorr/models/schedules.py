@@ -25,6 +25,7 @@ the start of every training epoch. Changes take effect at epoch boundaries only.
 from __future__ import annotations
 
 import bisect
+import itertools
 import operator
 from collections.abc import Sequence
 from typing import Any
@@ -63,7 +64,7 @@ class PiecewiseConstant:
             epochs.append(int(epoch))
         if epochs[0] != 0:
             raise ConfigError(f"the first schedule milestone must be at epoch 0 (the initial value), got {epochs[0]}")
-        if any(b <= a for a, b in zip(epochs, epochs[1:])):
+        if any(b <= a for a, b in itertools.pairwise(epochs)):
             raise ConfigError(f"schedule epochs must be strictly increasing, got {epochs}")
         self.epochs = epochs
         self.values = [v for _, v in pairs]
@@ -112,7 +113,8 @@ class EpochSchedule(pl.Callback):
             owner = operator.attrgetter(".".join(parents))(pl_module) if parents else pl_module
             getattr(owner, name)
         except AttributeError:
-            raise ConfigError(f"schedule target {self.target!r}: {type(pl_module).__name__} has no such attribute") from None
+            raise ConfigError(
+                f"schedule target {self.target!r}: {type(pl_module).__name__} has no such attribute") from None
         setattr(owner, name, value)
 
     def apply(self, pl_module: pl.LightningModule, epoch: int) -> Any:
@@ -155,6 +157,6 @@ class LossWeightSchedule(EpochSchedule):
     def set_value(self, pl_module: pl.LightningModule, value: Any) -> None:
         loss = getattr(pl_module, self.loss_attribute, None)
         if loss is None or not hasattr(loss, "set_weight"):
-            raise ConfigError(f"{type(pl_module).__name__}.{self.loss_attribute} is not a WeightedLoss (no set_weight); "
-                              f"cannot schedule the weight of {self.term!r}")
+            raise ConfigError(f"{type(pl_module).__name__}.{self.loss_attribute} is not a WeightedLoss (no "
+                              f"set_weight); cannot schedule the weight of {self.term!r}")
         loss.set_weight(self.term, value)

@@ -35,6 +35,14 @@ it with the plain per-edge formulation, values and gradients, in float64):
 4. Duplicate edges do not change a max, so edges are passed deduplicated, once per undirected edge
    (:func:`shapecorr.geometry.mesh_graph.undirected_edges`); the original's face-listed edges count every
    interior edge twice per direction.
+5. Channels constant over the vertices may be passed as shared channels whatever the layer was built with
+   (only ``in + shared`` must match): the interpolator's time ``t`` is such a channel.
+6. A batch whose elements differ only by a row added to every vertex (``u_b = x + o_b``, the first layer of
+   the interpolator: ``fc_pos([x, Pi y - x, t_b])`` = base + ``t_b w``) shares all edge work:
+   ``max(u_i, u_j) - u_i = max(x_i, x_j) - x_i``, so the edge GEMM, its gathers and the ``-W0b u_i`` term
+   use the base once, and the shortcut products are the base product plus one row per batch element;
+   only ``relu(u_b)`` needs every element (:meth:`ResnetEC.forward_separable`). With T + 1 = 8 time steps
+   this removes 7/8 of the first layer's edge and per-vertex GEMMs.
 
 Per layer, the per-edge work is one ``(E, c) x (c, h)`` GEMM (undirected edges) and the ``(2E, h) x (h, h)``
 GEMM of ``fc1`` (directed messages), against ``(4E, 2c) x (2c, h)`` twice plus ``(4E, h) x (h, h)`` in the
@@ -43,8 +51,15 @@ original (E undirected edges, face-listed duplicates). The max aggregation is
 backward passes are hand-written because torch's generic ones dominated the CPU profile (torch 2.13): the
 max (torch's ``scatter_reduce`` backward over an expanded index, ~20x its forward) and ``torch.maximum``
 (bool-mask selects, ~20x its forward); the per-edge half of the layer runs in one autograd node that reuses
-its large buffers in place. Batched inputs are flattened to rows, because scatters and gathers along dim -2
-of 3-D tensors take a slow generic path on CPU.
+its large buffers in place (in its backward the max mask's buffer takes the hidden gradient, and the first
+half of the message gradient's buffer the edge gradient: every fresh large CPU buffer is a new ``mmap``
+whose page faults cost about as much as the arithmetic on it; 10-15% of a layer, measured). Batched inputs
+are flattened to rows, because scatters and gathers along dim -2 of 3-D tensors take a slow generic path on
+CPU. (Tried and dropped, measured on the 2000-vertex benchmark mesh: messages grouped by receiver degree
+so that the max is a dense reduction, where the max backward loses its two gathers but the edge term needs
+one and the per-vertex sums get slower, 14.8 ms against 14.0 ms for these parts per layer; argmax indices
+with element-wise gathers, 4x slower than the row gathers used; a vertex-major layout ``(n, B * c)`` for
+batches, 10-20% faster gathers but not worth a second code path.)
 ``fast=False`` runs the plain per-edge formulation with torch's own autograd and is kept as the reference.
 
 Shapes: features are ``(..., n, c)`` with any leading batch dimensions (e.g. the time steps of the
@@ -117,22 +132,12 @@ class ResnetBlockFC(nn.Module):
 
 
 class _Graph(NamedTuple):
-    """A validated undirected edge list and its directed messages grouped by receiver.
-
-    The directed messages (each edge both ways) are ordered by receiving vertex, and the receivers by degree,
-    so that the messages of the ``count`` receivers of degree ``d`` form one contiguous ``(count, d)`` block:
-    the max aggregation is then a dense reduction per block (``buckets``), its backward a broadcast compare,
-    with no scatter and no gather over messages.
-    """
+    """A validated undirected edge list: endpoints, which vertices have an edge, how many do."""
 
     a: torch.Tensor
     b: torch.Tensor
     has_edge: torch.Tensor  # (n, 1) bool
     n_receiving: int
-    senders: torch.Tensor  # (M,) sender of each directed message, in receiver-grouped order
-    edge_ids: torch.Tensor  # (M,) undirected edge of each message
-    receivers: torch.Tensor  # (n_r,) receiving vertices, grouped by degree
-    buckets: tuple[tuple[int, int, int, int], ...]  # (degree, first receiver, receiver count, first message)
 
 
 def _edge_index(edges: torch.Tensor, n_verts: int, device: torch.device) -> _Graph:
@@ -144,23 +149,9 @@ def _edge_index(edges: torch.Tensor, n_verts: int, device: torch.device) -> _Gra
     edges = edges.to(device=device, dtype=torch.int64)
     if int(edges.min()) < 0 or int(edges.max()) >= n_verts:
         raise ConfigError(f"edges index vertices outside [0, {n_verts})")
-    n_edges = edges.shape[0]
-    a, b = edges[:, 0], edges[:, 1]
-    receiving, sending = torch.cat((a, b)), torch.cat((b, a))
-    edge_of = torch.arange(n_edges, device=device).repeat(2)
-    degree = torch.bincount(receiving, minlength=n_verts)
-    by_degree = torch.argsort(degree * n_verts + torch.arange(n_verts, device=device))
-    receivers = by_degree[degree[by_degree] > 0]
-    slot = torch.full((n_verts,), -1, dtype=torch.int64, device=device)
-    slot[receivers] = torch.arange(receivers.numel(), device=device)
-    order = torch.argsort(slot[receiving], stable=True)
-    degrees, counts = torch.unique_consecutive(degree[receivers], return_counts=True)
-    buckets, first_recv, first_msg = [], 0, 0
-    for d, count in zip(degrees.tolist(), counts.tolist()):
-        buckets.append((d, first_recv, count, first_msg))
-        first_recv, first_msg = first_recv + count, first_msg + d * count
-    return _Graph(a, b, (degree > 0).unsqueeze(1), receivers.numel(), sending[order], edge_of[order], receivers,
-                  tuple(buckets))
+    has_edge = torch.zeros(n_verts, 1, dtype=torch.bool, device=device)
+    has_edge[edges.reshape(-1)] = True
+    return _Graph(edges[:, 0], edges[:, 1], has_edge, int(has_edge.sum()))
 
 
 def _flat_rows(index: torch.Tensor, n_rows: int, n_batch: int) -> torch.Tensor:
@@ -176,34 +167,29 @@ def _flat_rows(index: torch.Tensor, n_rows: int, n_batch: int) -> torch.Tensor:
     return (index.unsqueeze(0) + offsets.unsqueeze(1)).reshape(-1)
 
 
-def _message_blocks(t: torch.Tensor, buckets):
-    """Per degree bucket, the ``(B, count, degree, c)`` view of a ``(B, M, c)`` per-message tensor."""
-    for d, _, count, m0 in buckets:
-        yield t[:, m0 : m0 + d * count].unflatten(1, (count, d))
-
-
-def _receiver_blocks(t: torch.Tensor, buckets):
-    """Per degree bucket, the ``(B, count, 1, c)`` view of a ``(B, n_r, c)`` per-receiver tensor."""
-    for _, r0, count, _ in buckets:
-        yield t[:, r0 : r0 + count].unsqueeze(2)
-
-
 def _max_backward(
-    grad_out: torch.Tensor, values: torch.Tensor, out: torch.Tensor, receivers: torch.Tensor, n_winners: int
-) -> torch.Tensor:
+    grad_out: torch.Tensor,
+    values: torch.Tensor,
+    out: torch.Tensor,
+    receivers: torch.Tensor,
+    n_winners: int,
+    keep_mask: bool = False,
+):
     """Gradient of ``out = row-wise max of values (R, c) by receivers`` w.r.t. ``values``.
 
     The gradient flows to the value(s) equal to the maximum, split evenly among ties as in torch's own amax
     backward. The mask is a float tensor (``torch.eq`` with a float ``out=``): products and selects with bool
     masks are 3-8x slower on CPU (torch 2.13). Ties are counted only when there are more winners than
     (receiver, channel) pairs, which continuous data never produces (but identical neighbours do).
+    ``keep_mask`` also returns the mask's buffer (``(R, c)``, free for reuse by the caller).
     """
     winners = out.index_select(0, receivers)
     torch.eq(values, winners, out=winners)
     if int(winners.sum()) != n_winners:
         counts = torch.zeros_like(grad_out).index_add_(0, receivers, winners)
         grad_out = grad_out / counts.clamp_min(1)
-    return grad_out.index_select(0, receivers).mul_(winners)
+    grad = grad_out.index_select(0, receivers).mul_(winners)
+    return (grad, winners) if keep_mask else grad
 
 
 class _MaxAggregate(torch.autograd.Function):
@@ -263,86 +249,53 @@ class _MessagesMax(torch.autograd.Function):
     """The per-edge half of the fast EdgeConv, fused: from per-vertex and per-edge pre-activations to the
     max-aggregated messages, with a hand-written backward.
 
-    For the directed message k (receiver ``r``, sender ``s``, undirected edge ``e``, batch element ``t``):
-    ``m_k = neigh[t, s] + W1 relu(pre_vertex[t, r] + edge[t, e])``; ``out[t, r] = max_k m_k`` over the
-    messages of ``r``, 0 for a vertex without edges. ``edge`` is ``(B * E, h)``, or ``(E, h)`` shared by the
-    batch (``edge_shared``).
+    ``out[r] = max_{k: receivers[k] = r} (neigh[senders[k]] + W1 relu(pre_vertex[receivers[k]] + edge[k mod E]))``
 
-    Messages are stored grouped by receiver and degree (:class:`_Graph`): the max is a dense reduction per
-    degree block, and its backward a broadcast compare with the block maxima (the gradient goes to the
-    maxima, split evenly among ties, like torch's amax). Every large ``(B * M, h)`` buffer is written once;
-    a scatter-based max with gathers of the maxima costs about twice as much on CPU (torch 2.13).
+    per batch element; ``edge`` is ``(B * E, h)``, or ``(E, h)`` shared by the batch (``edge_shared``). Same
+    math as composing torch ops, but every large ``(2E, h)`` buffer is reused in place where autograd would
+    allocate a new one (a fresh large CPU buffer costs page faults comparable to the arithmetic on it), and
+    the max gradient is :func:`_max_backward`.
     """
 
     @staticmethod
-    def forward(ctx, pre_vertex, edge_term, neigh_term, w1, senders, edge_ids, receivers, buckets, n_batch,
-                edge_shared):
+    def forward(ctx, pre_vertex, edge_term, neigh_term, w1, receivers, senders, n_batch, n_winners, edge_shared):
         # One dtype for the in-place arithmetic (under autocast the inputs may mix bfloat16 and float32;
         # autograd casts the returned gradients back to each input's dtype).
         dtype = functools.reduce(torch.promote_types, (pre_vertex.dtype, edge_term.dtype, neigh_term.dtype, w1.dtype))
         pre_vertex, edge_term, neigh_term, w1 = (t.to(dtype) for t in (pre_vertex, edge_term, neigh_term, w1))
-        n_rows, hid, out_ch = neigh_term.shape[0], pre_vertex.shape[1], neigh_term.shape[1]
-        n, n_msg = n_rows // n_batch, senders.numel()
-        n_edges = edge_term.shape[0] if edge_shared else edge_term.shape[0] // n_batch
-        recv_rows = _flat_rows(receivers, n, n_batch)
-        pre_recv = pre_vertex.index_select(0, recv_rows).view(n_batch, -1, hid)
-        if edge_shared:
-            gathered = edge_term.index_select(0, edge_ids).unsqueeze(0)
-            hidden = gathered if n_batch == 1 else gathered.new_empty(n_batch, n_msg, hid)
-            for h_blk, g_blk, p_blk in zip(_message_blocks(hidden, buckets), _message_blocks(gathered, buckets),
-                                           _receiver_blocks(pre_recv, buckets)):
-                torch.add(g_blk, p_blk, out=h_blk)
-        else:
-            hidden = edge_term.index_select(0, _flat_rows(edge_ids, n_edges, n_batch)).view(n_batch, n_msg, hid)
-            for h_blk, p_blk in zip(_message_blocks(hidden, buckets), _receiver_blocks(pre_recv, buckets)):
-                h_blk.add_(p_blk)
-        hidden = hidden.view(-1, hid).relu_()
-        messages = neigh_term.index_select(0, _flat_rows(senders, n, n_batch)).addmm_(hidden, w1.T)
-        blocks = _message_blocks(messages.view(n_batch, n_msg, out_ch), buckets)
-        maxima = torch.cat([blk.amax(dim=2) for blk in blocks], dim=1)  # (B, n_r, out)
-        out = messages.new_zeros(n_rows, out_ch).index_copy_(0, recv_rows, maxima.view(-1, out_ch))
-        ctx.save_for_backward(hidden, messages, maxima, w1, senders, edge_ids, recv_rows)
-        ctx.buckets, ctx.n_batch, ctx.n_edges, ctx.edge_shared = buckets, n_batch, n_edges, edge_shared
-        ctx.shapes = (pre_vertex.shape[0], n)
+        hid, out_ch = pre_vertex.shape[1], neigh_term.shape[1]
+        hidden = pre_vertex.index_select(0, receivers)
+        hidden.view(n_batch, 2, -1, hid).add_(edge_term.view(1 if edge_shared else n_batch, 1, -1, hid)).relu_()
+        messages = neigh_term.index_select(0, senders).addmm_(hidden, w1.T)
+        out = messages.new_zeros(neigh_term.shape[0], out_ch)
+        out.scatter_reduce_(0, receivers.unsqueeze(1).expand_as(messages), messages, "amax", include_self=False)
+        ctx.save_for_backward(hidden, messages, out, w1, receivers, senders)
+        ctx.n_batch, ctx.n_winners, ctx.n_pre, ctx.edge_shared = n_batch, n_winners, pre_vertex.shape[0], edge_shared
         return out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out):
-        hidden, messages, maxima, w1, senders, edge_ids, recv_rows = ctx.saved_tensors
-        buckets, n_batch, n_edges = ctx.buckets, ctx.n_batch, ctx.n_edges
-        n_pre, n = ctx.shapes
-        hid, out_ch = hidden.shape[1], messages.shape[1]
-        grad_recv = grad_out.index_select(0, recv_rows).view(n_batch, -1, out_ch)
-        # Winners: a float mask (products and selects with bool masks are 3-8x slower on CPU, torch 2.13).
-        grad_msg = torch.empty_like(messages)
-        msg3, grad3 = messages.view(n_batch, -1, out_ch), grad_msg.view(n_batch, -1, out_ch)
-        for m_blk, g_blk, mx_blk in zip(_message_blocks(msg3, buckets), _message_blocks(grad3, buckets),
-                                        _receiver_blocks(maxima, buckets)):
-            torch.eq(m_blk, mx_blk, out=g_blk)
-        # Ties are counted only when there are more winners than (receiver, channel) pairs, which continuous
-        # data never produces (identical neighbours do).
-        if int(grad_msg.sum()) != maxima.numel():
-            counts = torch.cat([blk.sum(dim=2) for blk in _message_blocks(grad3, buckets)], dim=1)
-            grad_recv = grad_recv / counts.clamp_min(1)
-        for g_blk, go_blk in zip(_message_blocks(grad3, buckets), _receiver_blocks(grad_recv, buckets)):
-            g_blk.mul_(go_blk)
-        grad_neigh = grad_out.new_zeros(grad_out.shape[0], out_ch).index_add_(
-            0, _flat_rows(senders, n, n_batch), grad_msg)
+        hidden, messages, out, w1, receivers, senders = ctx.saved_tensors
+        grad_msg, winners = _max_backward(grad_out, messages, out, receivers, ctx.n_winners, keep_mask=True)
+        grad_neigh = torch.zeros_like(grad_out).index_add_(0, senders, grad_msg)
         grad_w1 = grad_msg.T @ hidden
-        grad_hidden = grad_msg @ w1
-        del grad_msg
+        # The mask's buffer is free now (same shape when hidden and output widths agree, as in ResnetEC).
+        grad_hidden = torch.mm(grad_msg, w1, out=winners if winners.shape[1] == w1.shape[1] else None)
         torch.ops.aten.threshold_backward.grad_input(grad_hidden, hidden, 0, grad_input=grad_hidden)
-        if ctx.edge_shared:
-            grad_edge = grad_hidden.new_zeros(n_edges, hid).index_add_(0, _flat_rows(edge_ids, 0, n_batch),
-                                                                        grad_hidden)
+        hid = hidden.shape[1]
+        n_edges = hidden.shape[0] // (2 * ctx.n_batch)
+        halves = grad_hidden.view(ctx.n_batch, 2, n_edges, hid)
+        if ctx.edge_shared:  # summed over both directions and the batch
+            grad_edge = halves.sum((0, 1))
+        elif grad_msg.shape[1] == hid:  # the two directions of each edge, into grad_msg's (free) buffer
+            free = grad_msg.view(-1)[: ctx.n_batch * n_edges * hid].view(ctx.n_batch, n_edges, hid)
+            grad_edge = torch.add(halves[:, 0], halves[:, 1], out=free).view(-1, hid)
         else:
-            grad_edge = grad_hidden.new_zeros(n_batch * n_edges, hid).index_add_(
-                0, _flat_rows(edge_ids, n_edges, n_batch), grad_hidden)
-        grad_h3 = grad_hidden.view(n_batch, -1, hid)
-        grad_recv_pre = torch.cat([blk.sum(dim=2) for blk in _message_blocks(grad_h3, buckets)], dim=1)
-        grad_pre = grad_hidden.new_zeros(n_pre, hid).index_copy_(0, recv_rows, grad_recv_pre.view(-1, hid))
-        return grad_pre, grad_edge, grad_neigh, grad_w1, None, None, None, None, None, None
+            grad_edge = halves.sum(1).view(-1, hid)
+        del grad_msg
+        grad_pre = grad_hidden.new_zeros(ctx.n_pre, hid).index_add_(0, receivers, grad_hidden)
+        return grad_pre, grad_edge, grad_neigh, grad_w1, None, None, None, None, None
 
 
 def max_aggregate(values: torch.Tensor, receivers: torch.Tensor, n_verts: int) -> torch.Tensor:
@@ -517,9 +470,12 @@ class EdgeConv(nn.Module):
         n_src = 1 if edge_shared else n_batch
         fa, fb = _flat_rows(graph.a, n, n_src), _flat_rows(graph.b, n, n_src)
         edge_term = _GatherMax.apply(edge_src, fa, fb) @ w0b[:, :c].T
+        # Directed messages in the order: all (receiver a <- sender b), then all (b <- a), per batch element.
+        receivers = _flat_rows(torch.cat((graph.a, graph.b)), n, n_batch)
+        senders = _flat_rows(torch.cat((graph.b, graph.a)), n, n_batch)
+        n_winners = n_batch * out_ch * graph.n_receiving
         aggregated = _MessagesMax.apply(
-            pre_vertex, edge_term, neigh_term, blk.fc1.weight, graph.senders, graph.edge_ids, graph.receivers,
-            graph.buckets, n_batch, edge_shared,
+            pre_vertex, edge_term, neigh_term, blk.fc1.weight, receivers, senders, n_batch, n_winners, edge_shared
         )
         # A vertex without edges gets 0 (no message), not its shortcut term.
         out = aggregated.view(n_batch, n, out_ch) + self_term.view(n_batch, n, out_ch) * graph.has_edge.to(x.dtype)

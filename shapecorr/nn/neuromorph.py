@@ -3,7 +3,9 @@
 * :class:`NeuroMorphFeatureNet`: per-vertex input ``[xyz, vertex normal]`` (6 channels), 128-D output,
   L2-normalized per vertex (the features of the softmax correspondence, :mod:`shapecorr.matching.softmax`).
 * :class:`NeuroMorphInterpolator`: per-vertex input ``[x, Pi y - x, t]`` (7 channels), output a displacement
-  ``d``; the interpolation is ``X(t) = x + t d(x, Pi y - x, t)``. All time steps run as one batch.
+  ``d``; the interpolation is ``X(t) = x + t d(x, Pi y - x, t)``. All time steps run as one batch, whose
+  elements differ only in the vertex-constant channel t: the t-independent work runs once
+  (:meth:`shapecorr.nn.edgeconv.ResnetEC.forward_separable`).
 
 Time steps (methods-digest §4.4): with T intermediate steps, ``t_i = i / (T + 1)`` for ``i = 1 .. T + 1``, so
 the last one is t = 1 (:func:`interpolation_times`).

@@ -106,6 +106,7 @@ def test_default_frames(meshes, tmp_path):
         (["model=descriptor_nn"], "needs an interpolating matcher"),
         (["task=transfer", *BLEND], "task must be one of"),
         (["interp_times=[1,0]", *BLEND], "strictly increasing"),
+        (["interp_times=0.5", *BLEND], "interp_times must be a list"),
     ],
 )
 def test_config_errors(meshes, tmp_path, capsys, overrides, message):

@@ -14,7 +14,12 @@ from hydra.utils import instantiate
 from pytorch_lightning.callbacks import ModelCheckpoint
 
 from shapecorr.cli.common import EXIT_INVALID_INPUT
-from shapecorr.cli.train import _instantiate, build_callbacks, checkpoint_callback, train
+from shapecorr.cli.train import (
+    _instantiate,
+    build_callbacks,
+    checkpoint_callback,
+    train,
+)
 from shapecorr.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -29,7 +34,7 @@ def _cfg(tmp_path, *overrides):
 def test_default_run_trains_on_the_small_synthetic_set(tmp_path):
     cfg = _cfg(tmp_path)
     syn = cfg.data.synthetic
-    assert syn.n_human_subjects * syn.n_human_poses + syn.n_quad_subjects * syn.n_quad_poses == 20
+    assert syn.n_human_subjects * syn.n_human_poses == 12 and syn.n_quad_subjects == 0
     assert Path(cfg.data.root).name == "small_seed0"
     # evaluate.py's default keeps the 100-shape set in its own folder; debug=tiny gets the tiny preset again
     with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
@@ -54,7 +59,7 @@ def test_every_n_train_steps_replaces_every_n_epochs(tmp_path):
     only_last = checkpoint_callback(_cfg(tmp_path, "checkpoint.every_n_epochs=null"), tmp_path)
     assert only_last._every_n_train_steps == 0 and only_last._every_n_epochs == 0 and only_last.save_last
     # and Lightning accepts the combination in a Trainer
-    cfg = _cfg(tmp_path, "checkpoint.every_n_train_steps=100", "logger=null")
+    cfg = _cfg(tmp_path, "checkpoint.every_n_train_steps=100", "~logger")
     trainer = _instantiate(cfg.trainer, "trainer", callbacks=build_callbacks(cfg, tmp_path), logger=False)
     assert isinstance(trainer.checkpoint_callback, ModelCheckpoint)
     assert trainer.checkpoint_callback._every_n_train_steps == 100
@@ -83,7 +88,7 @@ def test_lightning_misconfiguration_is_a_config_error(tmp_path, override, messag
 
 
 def test_cli_prints_the_error_without_traceback(tmp_path, capsys):
-    cfg = _cfg(tmp_path, "trainer.max_time=2h", "logger=null")
+    cfg = _cfg(tmp_path, "trainer.max_time=2h", "~logger")
     with pytest.raises(SystemExit) as exit_info:
         train(cfg)
     assert exit_info.value.code == EXIT_INVALID_INPUT
@@ -91,3 +96,11 @@ def test_cli_prints_the_error_without_traceback(tmp_path, capsys):
     assert err.startswith("error: invalid trainer options") and "DD:HH:MM:SS" in err
     assert "Traceback" not in err
     assert not (tmp_path / "cache" / "synthetic").exists()  # failed before generating any data
+
+
+def test_a_model_without_parameters_is_refused_before_any_data_work(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        train(_cfg(tmp_path, "model.backbone=identity", "~logger"))
+    assert exit_info.value.code == EXIT_INVALID_INPUT
+    assert "no trainable parameters" in capsys.readouterr().err
+    assert not (tmp_path / "cache" / "synthetic").exists()

@@ -53,7 +53,7 @@ def tiny_run(cache_dir, tmp_path_factory):
     env = {**os.environ, "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1"}
     proc = subprocess.run([sys.executable, str(REPO / "train.py"), *TINY, f"paths.cache_dir={cache_dir}",
                            "checkpoint.every_n_train_steps=1", f"hydra.run.dir={run_dir}"],
-                          cwd=REPO, capture_output=True, text=True, timeout=600, env=env)
+                          cwd=REPO, capture_output=True, text=True, timeout=600, env=env, check=False)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return run_dir
 
@@ -104,11 +104,28 @@ def test_summarize_without_events_is_a_clear_error(bench, tmp_path):
 def test_misconfiguration_while_fitting_is_a_config_error(cache_dir, tmp_path, capsys):
     with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
         cfg = compose("train", overrides=[*TINY, f"paths.cache_dir={cache_dir}", f"paths.output_dir={tmp_path}",
-                                          "logger=null", "trainer.enable_progress_bar=false",
-                                          "+callbacks.best={_target_: pytorch_lightning.callbacks.ModelCheckpoint,"
-                                          "monitor: val/not_logged}"])
+                                          "~logger", "trainer.enable_progress_bar=false",
+                                          ("+callbacks.best={_target_: pytorch_lightning.callbacks.ModelCheckpoint,"
+                                           "monitor: val/not_logged}")])
     with pytest.raises(SystemExit) as exit_info:
         train(cfg)
     assert exit_info.value.code == EXIT_INVALID_INPUT
     err = capsys.readouterr().err
     assert "error: invalid trainer or callback options" in err and "val/not_logged" in err
+
+
+def test_launch_commands_compose_without_plus_overrides(bench, tmp_path):
+    from shapecorr.cli.train import checkpoint_callback
+
+    cmds = bench.launch_commands(tmp_path / "run", "/data/FAUST_r", with_published=True)
+    assert set(cmds) == {"train", "eval", "ablation", "published"}
+    train_args = [a for a in cmds["train"][2:] if not a.startswith("hydra.")]
+    assert not any(a.startswith("+") for a in train_args)
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        cfg = compose("train", overrides=[*train_args, f"paths.output_dir={tmp_path}"])
+    assert cfg.trainer.max_time == "00:02:00:00" and cfg.trainer.val_check_interval == 1000
+    assert cfg.trainer.accumulate_grad_batches == 4 and cfg.model.val_refine_levels is None
+    assert cfg.data.root == "/data/FAUST_r" and cfg.model.num_samples == 2000
+    assert checkpoint_callback(cfg, tmp_path)._every_n_train_steps == 100
+    assert f"ckpt_path={tmp_path / 'run' / 'checkpoints' / 'last.ckpt'}" in cmds["eval"]
+    assert "model=deep_shells_ablation" in cmds["ablation"] and "data=faust_r" in cmds["ablation"]

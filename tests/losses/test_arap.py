@@ -85,7 +85,7 @@ def test_energy_matches_an_explicit_loop():
 
 @pytest.mark.parametrize("mode", ["both-sides", "average"])
 def test_neuromorph_face_listed_edges_equal_weighted_unique_edges(mode):
-    verts, faces, edges = _mesh()
+    verts, faces, _ = _mesh()
     edges_w, counts = undirected_edges(faces, return_counts=True)
     face_listed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
     directed_dupes = torch.cat((face_listed, face_listed.flip(1)))  # as in the original: 4x per interior edge
@@ -126,7 +126,9 @@ def test_gradcheck(mode, detach):
     verts, _, edges = _mesh()
     v0 = verts.clone().requires_grad_()
     vt = _nonrigid(verts, 9).requires_grad_()
-    fn = lambda a, b: arap_energy(a, b, edges, mode=mode, detach_rotations=detach)  # noqa: E731
+    def fn(a, b):
+        return arap_energy(a, b, edges, mode=mode, detach_rotations=detach)
+
     assert torch.autograd.gradcheck(fn, (v0, vt), eps=1e-6, atol=1e-7, rtol=1e-5, fast_mode=True)
 
 

@@ -70,3 +70,22 @@ def test_errors():
     bad[0, 0] = float("nan")
     with pytest.raises(NumericalError, match="not finite"):
         registration_loss(bad, y, pi, pi_inv)
+
+
+def test_precomputed_soft_target_gives_the_same_value_and_gradients():
+    n_x, n_y = 12, 15
+    gen = torch.Generator().manual_seed(7)
+    deformed_x = torch.randn(n_x, 3, generator=gen, dtype=DTYPE)
+    verts_y = torch.randn(n_y, 3, generator=gen, dtype=DTYPE)
+    maps = [_random_soft_map(n_x, n_y, 8), _random_soft_map(n_y, n_x, 9)]
+    results = []
+    for shared in (False, True):
+        pi, pi_inv, x1 = (t.clone().requires_grad_() for t in (*maps, deformed_x))
+        target = pi @ verts_y
+        loss = registration_loss(x1, verts_y, pi, pi_inv, soft_target=target if shared else None)
+        loss = loss + target.square().sum()  # a second use of the target, as the interpolator's input
+        results.append((loss.detach(), *torch.autograd.grad(loss, [pi, pi_inv, x1])))
+    for a, b in zip(*results):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ConfigError, match="soft_target"):
+        registration_loss(deformed_x, verts_y, *maps, soft_target=verts_y)

@@ -193,7 +193,9 @@ def test_nearest_neighbours_backends_agree_with_naive(d):
     x, y = torch.randn(300, d, generator=g), torch.randn(257, d, generator=g)
     dist = ((x[:, None].double() - y[None].double()) ** 2).sum(-1)
     naive = (dist.argmin(1), dist.argmin(0))
-    for kwargs in (dict(backend="kdtree"), dict(backend="brute"), dict(backend="brute", block_size=7),
+    # workers: 1 is the serial path, >= 2 runs the two directions in two threads (whatever the core count)
+    for kwargs in (dict(backend="kdtree"), dict(backend="kdtree", workers=1), dict(backend="kdtree", workers=2),
+                   dict(backend="kdtree", workers=3), dict(backend="brute"), dict(backend="brute", block_size=7),
                    dict(backend="auto")):
         nn_y, nn_x = bidirectional_nearest_neighbors(x, y, **kwargs)
         assert nn_y.dtype == torch.int64 and nn_y.shape == (300,) and nn_x.shape == (257,)
@@ -291,6 +293,21 @@ def test_layer_outputs(pair):
     torch.testing.assert_close(out.plan_adj.sum(1), torch.ones(300))
     assert out.fmap.shape == (21, 21) and out.tau.shape == (21, 3)
     assert out.deformed_x.shape == (300, 3) and out.shell_y.shape == (300, 3)
+
+
+def test_layer_without_plans_has_the_same_loss_and_gradients(pair):
+    sx, sy = _samples(pair, 200)
+    results = []
+    for return_plans in (True, False):
+        fx = pair["feat_x"][sx].clone().requires_grad_(True)
+        out = deep_shells_layer(fx, pair["feat_y"][sy], pair["x"], pair["y"], sx, sy, return_plans=return_plans)
+        out.loss.backward()
+        results.append((out.level_energies.detach(), fx.grad))
+        assert (out.plan is None) == (not return_plans) and (out.plan_adj is None) == (not return_plans)
+        if return_plans:
+            assert not out.plan.requires_grad and not out.plan_adj.requires_grad
+    assert torch.equal(results[0][0], results[1][0])
+    assert torch.equal(results[0][1], results[1][1])
 
 
 def test_layer_recovers_the_map_from_good_features(pair):

@@ -1,10 +1,12 @@
-"""Softmax soft maps: stochasticity, oracle formula, identity recovery, chunked hard maps, errors."""
+"""Softmax soft maps: stochasticity, oracle formula, identity recovery, chunked hard maps, the one-exponential
+pair (gradients against plain autograd, the transposed view, the fallback when a row underflows), errors."""
 
 import pytest
 import torch
 import torch.nn.functional as F
 
 from shapecorr.errors import ConfigError, NumericalError
+from shapecorr.matching import softmax as softmax_module
 from shapecorr.matching.softmax import (
     DEFAULT_SIGMA,
     cosine_similarity,
@@ -101,3 +103,56 @@ def test_errors():
         hard_maps(fx, fy, chunk_size=0)
     with pytest.raises(ConfigError, match=r"\(n, m\)"):
         soft_map_to_p2p(torch.ones(4))
+
+
+# -- one exponential for both maps, hand-written backward ------------------------------------------------------
+
+def _plain_maps(fx, fy, sigma):
+    s = sigma * (F.normalize(fx, dim=1) @ F.normalize(fy, dim=1).T)
+    return torch.softmax(s, dim=1), torch.softmax(s.T, dim=1)
+
+
+@pytest.mark.parametrize("use", ["both", "pi", "pi_inv"])
+def test_gradients_equal_plain_autograd(use):
+    """Value and gradients of both maps against two plain softmaxes (float64), with either map unused."""
+    fx, fy = _features(13, d=5, seed=11, dtype=torch.float64), _features(17, d=5, seed=12, dtype=torch.float64)
+    w1 = torch.randn(13, 17, generator=torch.Generator().manual_seed(13), dtype=torch.float64)
+    w2 = torch.randn(17, 13, generator=torch.Generator().manual_seed(14), dtype=torch.float64)
+    results = []
+    for fn in (softmax_soft_maps, _plain_maps):
+        a, b = fx.clone().requires_grad_(), fy.clone().requires_grad_()
+        pi, pi_inv = fn(a, b, 9.0)
+        loss = (0.0 if use == "pi_inv" else (pi * w1).sum()) + (0.0 if use == "pi" else (pi_inv * w2).sum())
+        loss = loss + (0.0 if use == "pi" else (pi_inv @ torch.ones(13, 3, dtype=torch.float64)).square().sum())
+        results.append((pi.detach(), pi_inv.detach(), *torch.autograd.grad(loss, [a, b])))
+    for ours, ref in zip(*results):
+        torch.testing.assert_close(ours, ref, rtol=1e-10, atol=1e-12)
+
+
+def test_inverse_map_is_a_transposed_view_and_equals_the_formula():
+    fx, fy = _features(8, seed=15), _features(6, seed=16)
+    pi, pi_inv = softmax_soft_maps(fx, fy, sigma=5.0)
+    assert pi.is_contiguous() and pi_inv.stride() == (1, 6)
+    ref_pi, ref_inv = _plain_maps(fx, fy, 5.0)
+    torch.testing.assert_close(pi, ref_pi)
+    torch.testing.assert_close(pi_inv, ref_inv)
+    torch.testing.assert_close(pi_inv.contiguous().view(-1), ref_inv.reshape(-1))
+
+
+def test_underflowing_rows_fall_back_to_separate_shifts():
+    """sigma = 1000 and one x feature opposite to all of y's: its row of exp(sigma S - max) underflows to 0
+    (it would divide 0 by 0); the shared-shift path declines and two separately shifted softmaxes run."""
+    fy = F.normalize(torch.ones(5, 4, dtype=torch.float64) + 0.1 * _features(5, d=4, seed=17, dtype=torch.float64),
+                     dim=1)
+    fx = torch.cat((fy[:3], -fy[:1]))
+    assert softmax_module._SoftmaxBothWays.apply(fx, fy, 1000.0) is None
+    fx = fx.clone().requires_grad_()
+    pi, pi_inv = softmax_soft_maps(fx, fy, sigma=1000.0)
+    assert bool(torch.isfinite(pi).all()) and bool(torch.isfinite(pi_inv).all())
+    torch.testing.assert_close(pi.sum(1), torch.ones(4, dtype=torch.float64))
+    torch.testing.assert_close(pi_inv.sum(1), torch.ones(5, dtype=torch.float64))
+    ref_pi, ref_inv = _plain_maps(fx.detach(), fy, 1000.0)
+    torch.testing.assert_close(pi, ref_pi)
+    torch.testing.assert_close(pi_inv, ref_inv)
+    (grad,) = torch.autograd.grad((pi @ torch.randn(5, 3, dtype=torch.float64)).square().sum(), fx)
+    assert bool(torch.isfinite(grad).all())

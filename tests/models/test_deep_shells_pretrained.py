@@ -28,8 +28,8 @@ from shapecorr.nn.spectral_conv import ORIGINAL_EIGENVALUE_FACTOR
 
 REPO = Path(__file__).resolve().parents[2]
 C_IN, C_OUT, N_BASIS, N_EIGS = 6, 4, 5, 12
-SMALL = dict(in_channels=C_IN, out_channels=C_OUT, num_basis=N_BASIS, num_eigs=N_EIGS, max_frequency=50.0,
-             num_samples=50, layer=dict(k_array=[6, 8], refine_k_min=6, refine_k_max=10, refine_levels=2))
+SMALL = {"in_channels": C_IN, "out_channels": C_OUT, "num_basis": N_BASIS, "num_eigs": N_EIGS, "max_frequency": 50.0,
+         "num_samples": 50, "layer": {"k_array": [6, 8], "refine_k_min": 6, "refine_k_max": 10, "refine_levels": 2}}
 PUBLISHED_WEIGHTS = "published_weights_faust_scape_ep20.pth"
 
 

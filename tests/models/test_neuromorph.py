@@ -27,7 +27,11 @@ from shapecorr.data.datasets import PairSample, ShapeSample
 from shapecorr.data.shape import make_shape
 from shapecorr.errors import ConfigError
 from shapecorr.losses.weighted import WeightedLoss
-from shapecorr.models.neuromorph import NeuroMorph, interpolation_strip_figure, log_interpolation
+from shapecorr.models.neuromorph import (
+    NeuroMorph,
+    interpolation_strip_figure,
+    log_interpolation,
+)
 from shapecorr.models.schedules import EpochSchedule, LossWeightSchedule
 
 REPO = Path(__file__).resolve().parents[2]
@@ -142,8 +146,11 @@ def test_interpolate_frames_maps_and_extrapolation(pair, tmp_path):
     with torch.no_grad():
         full = model.forward_pair(x, y, times)
     torch.testing.assert_close(result.deformation, full["frames"], rtol=1e-5, atol=1e-5)
-    assert torch.equal(result.p2p, full["pi_x_to_y"].argmax(1))
-    assert torch.equal(result.p2p_inv, full["pi_y_to_x"].argmax(1))
+    # hard maps = row argmax of the soft maps (up to float ties of the softmax: the chosen entry is a maximum)
+    for p2p, soft in ((result.p2p, full["pi_x_to_y"]), (result.p2p_inv, full["pi_y_to_x"])):
+        chosen = soft.gather(1, p2p[:, None]).squeeze(1)
+        torch.testing.assert_close(chosen, soft.max(1).values, rtol=1e-5, atol=0.0)
+        assert float((p2p == soft.argmax(1)).float().mean()) > 0.95
     match = model.match(x, y)
     torch.testing.assert_close(match.times, torch.tensor(nm.DEFAULT_EVAL_TIMES))
     assert match.deformation.shape == (len(nm.DEFAULT_EVAL_TIMES), x.shape.n_verts, 3)
@@ -169,7 +176,8 @@ def test_query_resolution_runs_on_a_remesh_and_carries_back(pair, tmp_path, monk
     small = _plain_copy(model).interpolate(remeshed_sample(x, rx), remeshed_sample(y, ry), times)
     nearest_x, source_y = torch.from_numpy(rx.nearest_vertex), torch.from_numpy(ry.source_vertex)
     assert torch.equal(result.p2p, source_y[small.p2p[nearest_x]])
-    assert torch.equal(result.p2p_inv, torch.from_numpy(rx.source_vertex)[small.p2p_inv[torch.from_numpy(ry.nearest_vertex)]])
+    source_x, nearest_y = torch.from_numpy(rx.source_vertex), torch.from_numpy(ry.nearest_vertex)
+    assert torch.equal(result.p2p_inv, source_x[small.p2p_inv[nearest_y]])
     expected = x.verts + rx.lift(small.deformation - torch.from_numpy(rx.verts))
     torch.testing.assert_close(result.deformation, expected)
     model.interpolate(x, y, times)
@@ -180,6 +188,20 @@ def _plain_copy(model: NeuroMorph) -> NeuroMorph:
     copy = NeuroMorph(**SMALL, cache_dir=model.cache_dir).eval()
     copy.load_state_dict(model.state_dict())
     return copy
+
+
+def test_interpolation_metrics_use_the_frame_at_t1(pair, tmp_path, monkeypatch):
+    from shapecorr.eval.protocol import score_deformation
+
+    model = _model(tmp_path, eval_times=[0.0, 0.5, 1.5]).eval()  # t = 1 missing: computed for the metrics
+    logged = {}
+    monkeypatch.setattr(model, "log", lambda name, value, **kw: logged.__setitem__(name, value))
+    result = model.match(pair.x, pair.y)
+    model._score_interpolation(pair, result, "val")
+    expected = score_deformation(model.interpolate(pair.x, pair.y, [0.0, 0.5, 1.0]).deformation, pair.x, pair.y)
+    assert {"val/chamfer", "val/chamfer_one_sided", "val/deformation_conformal_distortion"} <= set(logged)
+    for key in ("chamfer", "deformation_conformal_distortion"):
+        assert logged[f"val/{key}"] == pytest.approx(expected[key], rel=1e-5)
 
 
 def test_options_are_validated(tmp_path):
@@ -269,17 +291,18 @@ def _folder_dataset(root: Path) -> None:
     (root / "splits" / "test.txt").write_text("c\nd\n")
 
 
+@pytest.mark.slow
 def test_train_cli_tiny_smoke_run(tmp_path):
     data, run_dir = tmp_path / "data", tmp_path / "run"
     _folder_dataset(data)
-    args = ["model=neuromorph", "debug=tiny", "data=folder", f"data.root={data}", "~data.synthetic",
+    args = ["model=neuromorph", "debug=tiny", f"data.root={data}", "~data.synthetic",  # a folder, not generated
             "data.operators.n_eig=16", "data.prepare_workers=1", f"paths.cache_dir={tmp_path / 'cache'}",
             f"hydra.run.dir={run_dir}", "trainer.limit_train_batches=2", "trainer.limit_val_batches=1",
             "trainer.limit_test_batches=2", "+trainer.num_sanity_val_steps=0", "trainer.enable_progress_bar=false",
             "model.augment.resolution=[300,500]", "model.augment.variants=2"]
     env = {**os.environ, "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1"}
     proc = subprocess.run([sys.executable, str(REPO / "train.py"), *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=600, env=env)
+                          timeout=600, env=env, check=False)
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = [line for line in proc.stdout.strip().splitlines() if line.strip()]
     match = FINAL_LINE.match(lines[-1])
@@ -287,6 +310,14 @@ def test_train_cli_tiny_smoke_run(tmp_path):
     assert 0.0 <= float(match.group(1)) < 1.0 and int(match.group(2)) == 2
     last = run_dir / "checkpoints" / "last.ckpt"
     assert last.is_file() and list((run_dir / "tensorboard").glob("events.out.tfevents.*"))
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run_dir / "tensorboard")).Reload()
+    scalars = set(events.Tags()["scalars"])
+    for tag in ("train/loss_step", "train/registration_step", "train/arap_step", "train/geo_step", "schedule/T",
+                "schedule/lambda_geo", "val/geodesic_error", "val/chamfer", "val/deformation_conformal_distortion"):
+        assert tag in scalars, (tag, sorted(scalars))
+    assert "val/interpolation/strip" in events.Tags()["images"]
     state = torch.load(last, map_location="cpu", weights_only=False)
     assert state["global_step"] == 2 and state["hyper_parameters"]["augment"]["variants"] == 2
     # the evaluation path: load_from_checkpoint (default loss) and query a pair

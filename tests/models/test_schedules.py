@@ -14,7 +14,11 @@ from torch.utils.data import DataLoader, TensorDataset
 
 from shapecorr.errors import ConfigError
 from shapecorr.losses.weighted import WeightedLoss
-from shapecorr.models.schedules import EpochSchedule, LossWeightSchedule, PiecewiseConstant
+from shapecorr.models.schedules import (
+    EpochSchedule,
+    LossWeightSchedule,
+    PiecewiseConstant,
+)
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning", "ignore::DeprecationWarning")
 
@@ -55,9 +59,10 @@ def _callbacks():
 
 
 def _trainer(tmp_path, callbacks, **kwargs):
+    checkpointing = any(isinstance(c, ModelCheckpoint) for c in callbacks)
     options = dict(accelerator="cpu", devices=1, max_epochs=5, logger=False, enable_progress_bar=False,
-                   enable_model_summary=False, enable_checkpointing=any(isinstance(c, ModelCheckpoint) for c in callbacks),
-                   callbacks=callbacks, default_root_dir=str(tmp_path))
+                   enable_model_summary=False, enable_checkpointing=checkpointing, callbacks=callbacks,
+                   default_root_dir=str(tmp_path))
     return pl.Trainer(**{**options, **kwargs})
 
 

@@ -212,3 +212,36 @@ def test_errors(mesh):
         ResnetEC(6, 3, pool="mean")
     with pytest.raises(ConfigError, match="n_blocks"):
         ResnetEC(6, 3, n_blocks=0)
+
+
+@pytest.mark.parametrize("pool", ["global", "channel"])
+@pytest.mark.parametrize("fast", [True, False])
+def test_forward_separable_equals_forward_on_the_concatenated_input(mesh, pool, fast):
+    """Inputs that differ between batch elements only in vertex-constant channels (the interpolator's t): the
+    separable path (shared base and edge terms, t as a shared channel) == forward on [p_static, p_batch]."""
+    verts, edges = mesh
+    n = verts.shape[0]
+    net = _randomize(ResnetEC(6, 5, hidden_channels=16, n_blocks=3, pool=pool), seed=11, std=0.2).to(DTYPE)
+    gen = torch.Generator().manual_seed(12)
+    p_static = torch.randn(n, 4, generator=gen, dtype=DTYPE, requires_grad=True)
+    p_batch = torch.randn(3, 2, generator=gen, dtype=DTYPE, requires_grad=True)
+    params = list(net.parameters())
+    sep = net.forward_separable(p_static, p_batch, edges, fast=fast)
+    full = net(torch.cat((p_static.expand(3, n, 4), p_batch[:, None].expand(3, n, 2)), dim=-1), edges, fast=False)
+    assert sep.shape == (3, n, 5)
+    torch.testing.assert_close(sep, full, rtol=1e-10, atol=1e-10)
+    _assert_all_close(_grads(sep, [p_static, p_batch], params), _grads(full, [p_static, p_batch], params))
+    with pytest.raises(ConfigError, match="c_s \\+ c_b"):
+        net.forward_separable(p_static, p_batch[:, :1], edges)
+
+
+@pytest.mark.parametrize("hidden", [4, 9])
+def test_fast_path_with_block_hidden_width_different_from_output(mesh, hidden):
+    """The backward reuses the max mask's buffer only when the hidden and output widths agree."""
+    verts, edges = mesh
+    conv = _randomize(EdgeConv(5, 7, hidden_channels=hidden), seed=13).to(DTYPE)
+    x = torch.randn(2, verts.shape[0], 5, dtype=DTYPE, requires_grad=True)
+    params = list(conv.parameters())
+    fast, ref = conv(x, edges), conv(x, edges, fast=False)
+    torch.testing.assert_close(fast, ref, rtol=1e-10, atol=1e-10)
+    _assert_all_close(_grads(fast, [x], params), _grads(ref, [x], params))

@@ -1,0 +1,71 @@
+"""The refinement's normal equations carried from level to level equal the per-level solve."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import shapecorr.matching.deep_shells as ds
+from shapecorr.errors import ConfigError
+from shapecorr.matching.deep_shells import deformation_from_pairs
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _single_thread():
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def _problem(n_x=180, n_y=150, kmax=40, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    phi_x = torch.linalg.qr(torch.randn(n_x, kmax, generator=g, dtype=torch.float64))[0] * n_x**0.5
+    phi_y = torch.linalg.qr(torch.randn(n_y, kmax, generator=g, dtype=torch.float64))[0] * n_y**0.5
+    map_x_to_y = torch.randint(0, n_y, (n_x,), generator=g)
+    map_y_to_x = torch.randint(0, n_x, (n_y,), generator=g)
+    return phi_x, phi_y, map_x_to_y, map_y_to_x, g
+
+
+def _perturb(m, n_target, fraction, g):
+    m = m.clone()
+    idx = torch.randperm(m.numel(), generator=g)[: int(fraction * m.numel())]
+    m[idx] = torch.randint(0, n_target, (idx.numel(),), generator=g)
+    return m
+
+
+def test_carried_normal_equations_equal_the_per_level_solve(monkeypatch):
+    phi_x, phi_y, mxy, myx, g = _problem()
+    n_x, n_y = phi_x.shape[0], phi_y.shape[0]
+    calls = {"_rebuild": 0, "_update": 0, "_extend": 0}
+    for name in calls:
+        original = getattr(ds._PairNormalEquations, name)
+
+        def counted(self, *args, _original=original, _name=name):
+            calls[_name] += 1
+            return _original(self, *args)
+
+        monkeypatch.setattr(ds._PairNormalEquations, name, counted)
+    system = ds._PairNormalEquations(phi_x, phi_y)
+    # growing k with few changed pairs (update + extension), a repeated k, most pairs changed, unchanged
+    # pairs, and a smaller k (rebuild)
+    schedule = [(6, 0.0), (6, 0.05), (9, 0.02), (14, 0.01), (20, 0.0), (20, 0.9), (27, 0.0), (33, 0.03),
+                (40, 0.02), (12, 0.0)]
+    for k, fraction in schedule:
+        mxy, myx = _perturb(mxy, n_y, fraction, g), _perturb(myx, n_x, fraction, g)
+        shell_x = torch.randn(n_x, 3, generator=g)
+        shell_y = torch.randn(n_y, 3, generator=g)
+        fmap, tau = system.solve(k, shell_x, shell_y, mxy, myx, 1e-8)
+        ref_fmap, ref_tau = deformation_from_pairs(phi_x[:, :k], phi_y[:, :k], shell_x, shell_y, mxy, myx, 1e-8)
+        assert fmap.dtype == torch.float64 and fmap.shape == (k, k) and tau.shape == (k, 3)
+        torch.testing.assert_close(fmap, ref_fmap, rtol=0, atol=1e-10 * float(ref_fmap.abs().max()))
+        torch.testing.assert_close(tau, ref_tau, rtol=0, atol=1e-10 * float(ref_tau.abs().max()))
+    # every path was taken (rebuilds: the first level and the smaller k)
+    assert calls["_update"] >= 3 and calls["_extend"] >= 4 and calls["_rebuild"] >= 2
+
+
+def test_carried_normal_equations_reject_a_k_beyond_the_basis():
+    phi_x, phi_y, mxy, myx, _ = _problem(kmax=10)
+    system = ds._PairNormalEquations(phi_x, phi_y)
+    with pytest.raises(ConfigError, match="k=11"):
+        system.solve(11, torch.zeros(180, 3), torch.zeros(150, 3), mxy, myx, 1e-8)
