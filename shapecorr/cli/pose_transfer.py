@@ -27,15 +27,19 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from omegaconf import DictConfig
 
 from shapecorr.data.cache import ShapeCache, default_cache_root
 from shapecorr.data.datamodule import ShapePairDataModule
-from shapecorr.data.datasets import ShapeSample, load_mesh_cached, pair_name
+from shapecorr.data.datasets import (
+    ShapeSample,
+    load_mesh_cached,
+    pair_name,
+    sample_with_operators,
+)
 from shapecorr.data.io import write_map, write_mesh
-from shapecorr.data.operators import OperatorConfig, compute_operators
+from shapecorr.data.operators import OperatorConfig
 from shapecorr.data.shape import Normalization
 from shapecorr.errors import ConfigError, MeshReadError
 from shapecorr.eval import protocol
@@ -83,16 +87,7 @@ def load_sample(
     path = Path(path)
     if not path.is_file():
         raise MeshReadError("file not found" if not path.exists() else "is not a file", path)
-    shape = load_mesh_cached(cache, path, normalization)
-    ops = compute_operators(cache, shape.verts.numpy(), shape.faces.numpy(), operators)
-    as_t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
-    return ShapeSample(
-        shape=shape,
-        evals=as_t(ops["evals"]),
-        evecs=as_t(ops["evecs"]),
-        mass=as_t(ops["mass"]),
-        features={k: as_t(ops[k]) for k in operators.descriptors},
-    )
+    return sample_with_operators(load_mesh_cached(cache, path, normalization), operators, cache)
 
 
 def transfer_pose(
@@ -176,7 +171,11 @@ def _required_option(cfg: DictConfig, key: str, what: str) -> Path:
 
 def run_pose_transfer(cfg: DictConfig) -> dict[str, Any]:
     """``evaluate.py task=pose_transfer`` (see the module docstring); prints and returns the written paths."""
-    from shapecorr.cli.evaluate import build_matcher, interp_times_option, resolve_device
+    from shapecorr.cli.evaluate import (
+        build_matcher,
+        interp_times_option,
+        resolve_device,
+    )
 
     source = _required_option(cfg, "source", "the shape whose identity is kept")
     target = _required_option(cfg, "target", "the shape whose pose is taken")

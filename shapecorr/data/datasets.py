@@ -224,6 +224,32 @@ def load_mesh_cached(cache: ShapeCache, path: Path, normalization: Normalization
     return shape
 
 
+def sample_with_operators(
+    shape: Shape, operators: OperatorConfig, cache: ShapeCache, corres=None, corres_sym=None
+) -> ShapeSample:
+    """``shape`` with its eigenbasis and descriptors (from ``cache``, computed on a miss) as a :class:`ShapeSample`.
+
+    Parameters
+    ----------
+    shape : Shape
+    operators : OperatorConfig
+    cache : ShapeCache
+    corres, corres_sym : (n_ref,) int64 tensor, optional
+        Ground-truth reference indices (and their symmetric flip), when known.
+    """
+    ops = compute_operators(cache, shape.verts.numpy(), shape.faces.numpy(), operators)
+    as_t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
+    return ShapeSample(
+        shape=shape,
+        evals=as_t(ops["evals"]),
+        evecs=as_t(ops["evecs"]),
+        mass=as_t(ops["mass"]),
+        features={k: as_t(ops[k]) for k in operators.descriptors},
+        corres=corres,
+        corres_sym=corres_sym,
+    )
+
+
 def _prepare_one(args) -> str:
     """Worker: load one mesh and fill its cache entries (runs in a separate process)."""
     path, normalization, operators, cache_root, geodesics = args
@@ -313,20 +339,9 @@ class ShapeDataset(Dataset):
 
     def __getitem__(self, i: int) -> ShapeSample:
         shape = self.load_shape(i)
-        ops = compute_operators(self.cache, shape.verts.numpy(), shape.faces.numpy(), self.operators)
-        as_t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
-        name = shape.name
-        corres = self._read_corres(self._corres_paths[name], shape)
-        corres_sym = self._read_corres(self._sym_paths[name], shape)
-        return ShapeSample(
-            shape=shape,
-            evals=as_t(ops["evals"]),
-            evecs=as_t(ops["evecs"]),
-            mass=as_t(ops["mass"]),
-            features={k: as_t(ops[k]) for k in self.operators.descriptors},
-            corres=corres,
-            corres_sym=corres_sym,
-        )
+        return sample_with_operators(shape, self.operators, self.cache,
+                                     corres=self._read_corres(self._corres_paths[shape.name], shape),
+                                     corres_sym=self._read_corres(self._sym_paths[shape.name], shape))
 
     @staticmethod
     def _read_corres(path: Path | None, shape: Shape) -> torch.Tensor | None:

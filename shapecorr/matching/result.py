@@ -43,7 +43,8 @@ class MatchResult:
         Positions of x's vertices along an interpolation towards y (interpolating methods), in the
         normalized units of x; the last frame is the deformed x at ``times[-1]``.
     times : (T,) float tensor, optional
-        Time of each deformation frame in [0, 1]; required with ``deformation``.
+        Time of each deformation frame (0 = x, 1 = matched to y; values above 1 extrapolate); required with
+        ``deformation``.
     extras : dict
         Anything else a method wants to hand to its own logging (ignored by the evaluation).
     """

@@ -264,7 +264,8 @@ class DeepShells(CorrespondenceModule):
         samples_x = random_samples(x.shape.n_verts, num, generator=gen).to(x.verts.device)
         samples_y = random_samples(y.shape.n_verts, num, generator=gen).to(y.verts.device)
         out = deep_shells_layer(self.features(x, samples_x), self.features(y, samples_y), self.spectral_shape(x),
-                                self.spectral_shape(y), samples_x, samples_y, self.config)
+                                self.spectral_shape(y), samples_x, samples_y, self.config,
+                                return_plans=False)  # the loss needs the energies only: never form n x m plans
         energies = out.level_energies
         loss = (self.level_weights.to(energies) * energies).sum()
         if not torch.isfinite(loss):

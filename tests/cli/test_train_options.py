@@ -104,3 +104,12 @@ def test_a_model_without_parameters_is_refused_before_any_data_work(tmp_path, ca
     assert exit_info.value.code == EXIT_INVALID_INPUT
     assert "no trainable parameters" in capsys.readouterr().err
     assert not (tmp_path / "cache" / "synthetic").exists()
+
+
+def test_logger_none_disables_logging_but_keeps_checkpoints(tmp_path):
+    for option in ("logger=none", "~logger"):
+        cfg = _cfg(tmp_path, option)
+        assert not cfg.get("logger")
+        callbacks = build_callbacks(cfg, tmp_path)
+        assert [type(c).__name__ for c in callbacks] == ["ModelCheckpoint"]
+    assert any(type(c).__name__ == "LearningRateMonitor" for c in build_callbacks(_cfg(tmp_path), tmp_path))
