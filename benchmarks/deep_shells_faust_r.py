@@ -39,6 +39,7 @@ import sys
 from pathlib import Path
 
 import bench_common
+from training_runs import markdown_tables, read_metrics, summarize_run
 
 REPO = Path(__file__).resolve().parents[1]
 RESULT = REPO / "benchmarks" / "results" / "deep_shells_faust_r.json"
@@ -53,17 +54,9 @@ CPU_BUDGET_OVERRIDES = (
     "test=false",
     "model.val_refine_levels=null",
 )
-VAL_TAG = "val/geodesic_error"
-VAL_PAIRS_TAG = "val/pairs_seen"
-TRAIN_TAG = "train/loss_step"
 #: Published FAUST_r mean geodesic error of Deep Shells, fraction of sqrt(area) (Eisenberger et al. 2020, 1.7 %; the
 #: figure the golden reference README quotes for the released weights on all test pairs).
 PUBLISHED_FAUST_R_ERROR = 0.017
-#: Keys of an evaluate.py metrics.json copied into the summary.
-METRIC_KEYS = ("n_pairs", "mean_geodesic_error", "median_geodesic_error", "pck_auc", "mean_geodesic_error_sym",
-               "mean_conformal_distortion", "seconds_per_pair")
-#: Percent per fraction of sqrt(area), for the printed tables.
-PERCENT = 100.0
 
 
 def _python() -> str:
@@ -97,107 +90,13 @@ def launch_commands(run_dir: Path, faust_r: str | None, with_published: bool) ->
     return cmds
 
 
-# -- reading a run ------------------------------------------------------------------------------------------------
-def event_dirs(run_dir: Path) -> list[Path]:
-    """Folders under ``run_dir`` holding TensorBoard event files (sorted)."""
-    return sorted({p.parent for p in run_dir.rglob("events.out.tfevents.*")})
-
-
-def read_scalars(run_dir: Path) -> dict[str, list[tuple[int, float, float]]]:
-    """Every scalar of the run's event files: tag -> [(step, value, wall_time)], sorted by wall time.
-
-    Several event folders (e.g. a resumed run writing a new file) are merged; a step logged more than once keeps
-    its last value.
-    """
-    from tensorboard.backend.event_processing.event_accumulator import (
-        SCALARS,
-        EventAccumulator,
-    )
-
-    folders = event_dirs(run_dir)
-    if not folders:
-        raise SystemExit(f"{run_dir}: no TensorBoard event files (events.out.tfevents.*) found")
-    merged: dict[str, dict[int, tuple[float, float]]] = {}
-    for folder in folders:
-        acc = EventAccumulator(str(folder), size_guidance={SCALARS: 0})  # 0 = keep every event
-        acc.Reload()
-        for tag in acc.Tags()[SCALARS]:
-            for ev in sorted(acc.Scalars(tag), key=lambda e: e.wall_time):
-                merged.setdefault(tag, {})[int(ev.step)] = (float(ev.value), float(ev.wall_time))
-    return {tag: sorted(((s, v, w) for s, (v, w) in steps.items()), key=lambda t: t[2])
-            for tag, steps in merged.items()}
-
-
-def run_config(run_dir: Path) -> dict:
-    """The run's composed config and command-line overrides (``.hydra/``), unresolved; empty if absent."""
-    from omegaconf import OmegaConf
-
-    out: dict = {}
-    cfg_file, overrides = run_dir / ".hydra" / "config.yaml", run_dir / ".hydra" / "overrides.yaml"
-    if cfg_file.is_file():
-        out["config"] = OmegaConf.to_container(OmegaConf.load(cfg_file), resolve=False)
-    if overrides.is_file():
-        out["overrides"] = OmegaConf.to_container(OmegaConf.load(overrides), resolve=False)
-    return out
-
-
-def _int_or(value, default: int) -> int:
-    try:
-        return int(value)
-    except (TypeError, ValueError):
-        return default
-
-
-def pairs_per_step(config: dict) -> int:
-    """Training pairs per optimizer step: accumulate_grad_batches x devices (1 where unknown)."""
-    trainer = (config.get("config") or {}).get("trainer") or {}
-    devices = trainer.get("devices", 1)
-    return _int_or(trainer.get("accumulate_grad_batches"), 1) * (_int_or(devices, 1) if _int_or(devices, 1) > 0 else 1)
-
-
-def learning_curve(scalars: dict, per_step: int) -> dict:
-    """Validation and training curves against the number of training pairs seen."""
-    exact = {s: v for s, v, _ in scalars.get(VAL_PAIRS_TAG, [])}
-    start = min((w for series in scalars.values() for _, _, w in series), default=None)
-    val = []
-    for step, value, wall in scalars.get(VAL_TAG, []):
-        val.append({"step": step, "pairs_seen": int(exact.get(step, (step + 1) * per_step)),
-                    "pairs_seen_exact": step in exact, "val_geodesic_error": value,
-                    "hours": None if start is None else (wall - start) / 3600.0})
-    train = [{"step": s, "pairs_seen": (s + 1) * per_step, "loss": v} for s, v, _ in scalars.get(TRAIN_TAG, [])]
-    return {"validation": val, "train_loss": train, "pairs_per_optimizer_step": per_step}
-
-
-def read_metrics(folder: Path | None) -> dict | None:
-    """Selected numbers of an evaluate.py ``metrics.json`` (None when no folder is given)."""
-    if folder is None:
-        return None
-    path = Path(folder) / "metrics.json"
-    if not path.is_file():
-        raise SystemExit(f"{path}: not found (did the evaluation finish?)")
-    metrics = json.loads(path.read_text())
-    out = {k: metrics[k] for k in METRIC_KEYS if k in metrics}
-    out["metrics_file"] = str(path)
-    return out
-
-
 def summarize(run_dir: Path, eval_dir: Path | None = None, ablation_dir: Path | None = None,
               published_dir: Path | None = None) -> dict:
     """The summary dict written to the results file (see the module docstring)."""
-    run_dir = Path(run_dir)
-    scalars = read_scalars(run_dir)
-    config = run_config(run_dir)
-    curve = learning_curve(scalars, pairs_per_step(config))
-    val = curve["validation"]
     final = {name: read_metrics(folder) for name, folder in
              (("trained", eval_dir), ("ablation_no_learning", ablation_dir), ("published_weights", published_dir))}
     return {
-        "run_dir": str(run_dir),
-        "overrides": config.get("overrides"),
-        "curve": curve,
-        "best_validation": min(val, key=lambda p: p["val_geodesic_error"]) if val else None,
-        "last_validation": val[-1] if val else None,
-        "optimizer_steps_logged": max((s for series in scalars.values() for s, _, _ in series), default=-1) + 1,
+        **summarize_run(run_dir),
         "final": {k: v for k, v in final.items() if v is not None},
         "published_mean_geodesic_error": PUBLISHED_FAUST_R_ERROR,
         "units": "errors: geodesic distance / sqrt(area of the target) (x100 = percent)",
@@ -206,17 +105,7 @@ def summarize(run_dir: Path, eval_dir: Path | None = None, ablation_dir: Path | 
 
 def markdown(summary: dict) -> str:
     """Markdown tables: the validation curve and the final test numbers."""
-    lines = ["| pairs seen | optimizer steps | hours | val error (%) |", "|---:|---:|---:|---:|"]
-    for p in summary["curve"]["validation"]:
-        hours = "" if p["hours"] is None else f"{p['hours']:.2f}"
-        lines.append(f"| {p['pairs_seen']} | {p['step'] + 1} | {hours} | {PERCENT * p['val_geodesic_error']:.2f} |")
-    lines += ["", "| model | test pairs | mean error (%) | median error (%) | PCK AUC |", "|---|---:|---:|---:|---:|"]
-    for name, m in summary["final"].items():
-        median, auc = m.get("median_geodesic_error", float("nan")), m.get("pck_auc", float("nan"))
-        lines.append(f"| {name} | {m.get('n_pairs', '')} | {PERCENT * m['mean_geodesic_error']:.2f} | "
-                     f"{PERCENT * median:.2f} | {auc:.3f} |")
-    lines.append(f"| published (paper) | 380 | {PERCENT * summary['published_mean_geodesic_error']:.1f} | | |")
-    return "\n".join(lines)
+    return markdown_tables(summary, ("published (paper)", summary["published_mean_geodesic_error"]))
 
 
 def main(argv=None) -> int:

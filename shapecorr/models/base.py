@@ -5,7 +5,8 @@ A concrete model implements ``training_step`` (features -> matching -> loss -> `
 
 - validation and test steps that run ``match`` on the pair, score the map with the evaluation protocol
   (:func:`shapecorr.eval.protocol.score_map`: geodesic error / sqrt(area) against the ground truth) and log
-  ``val/geodesic_error`` (``test/geodesic_error``), the conformal distortion and the time per pair;
+  ``val/geodesic_error`` (``test/geodesic_error``), the conformal distortion and the time per pair, and while
+  fitting ``val/pairs_seen`` (training pairs seen so far: the x-axis of learning curves);
 - at the end of a validation epoch a PCK-curve figure and the colored correspondence of the first validation
   pair (TensorBoard meshes + a headless render), when the logger is TensorBoard;
 - ``required_operators``: the per-shape data the model needs (eigenpairs, descriptors), merged into the data
@@ -91,6 +92,12 @@ class CorrespondenceModule(pl.LightningModule):
         self._eval_errors["test"] = []
 
     def on_validation_epoch_end(self) -> None:
+        trainer = self._trainer
+        if trainer is not None and trainer.state.fn == "fit" and not trainer.sanity_checking:
+            # x-axis of learning curves: training pairs (batches x ranks) seen so far, exact also mid-epoch and
+            # with gradient accumulation (the logged step counts optimizer steps)
+            seen = trainer.fit_loop.epoch_loop.batch_progress.total.completed * trainer.world_size
+            self.log("val/pairs_seen", float(seen), batch_size=1)
         errors = self._eval_errors["val"]
         if not errors or self.trainer.sanity_checking:
             return

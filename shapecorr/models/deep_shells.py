@@ -294,15 +294,6 @@ class DeepShells(CorrespondenceModule):
         finally:
             self._validating_during_fit = False
 
-    def on_validation_epoch_end(self) -> None:
-        trainer = self._trainer
-        if trainer is not None and trainer.state.fn == "fit" and not trainer.sanity_checking:
-            # x-axis of learning curves: training pairs (batches x ranks) seen so far, exact also mid-epoch and
-            # with gradient accumulation (the logged step counts optimizer steps)
-            seen = trainer.fit_loop.epoch_loop.batch_progress.total.completed * trainer.world_size
-            self.log("val/pairs_seen", float(seen), batch_size=1)
-        super().on_validation_epoch_end()
-
     # -- matching ---------------------------------------------------------------------------------------------
     def match_config(self) -> tuple[DeepShellsConfig, bool]:
         """The layer config and refine flag ``match`` uses now (cheap refinement in validation while fitting)."""

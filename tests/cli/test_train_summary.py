@@ -37,7 +37,7 @@ def cache_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def bench():
-    sys.path.insert(0, str(BENCH.parent))  # the script imports bench_common from its folder
+    sys.path.insert(0, str(BENCH.parent))  # the script imports bench_common and training_runs from its folder
     try:
         spec = importlib.util.spec_from_file_location("deep_shells_faust_r", BENCH)
         module = importlib.util.module_from_spec(spec)
@@ -45,6 +45,11 @@ def bench():
     finally:
         sys.path.remove(str(BENCH.parent))
     return module
+
+
+@pytest.fixture(scope="module")
+def runs(bench):
+    return sys.modules["training_runs"]  # imported by the benchmark script
 
 
 @pytest.fixture(scope="module")
@@ -58,11 +63,11 @@ def tiny_run(cache_dir, tmp_path_factory):
     return run_dir
 
 
-def test_run_writes_step_checkpoints_and_pairs_seen(tiny_run, bench):
+def test_run_writes_step_checkpoints_and_pairs_seen(tiny_run, runs):
     # every_n_train_steps=1 won over the default every_n_epochs=1: one checkpoint per optimizer step
     steps = sorted(p.name for p in (tiny_run / "checkpoints").glob("epoch*.ckpt"))
     assert steps == ["epoch000-step000001.ckpt", "epoch000-step000002.ckpt"]
-    scalars = bench.read_scalars(tiny_run)
+    scalars = runs.read_scalars(tiny_run)
     assert [v for _, v, _ in scalars["val/pairs_seen"]] == [2.0, 4.0]
     assert len(scalars["val/geodesic_error"]) == TRAIN_PAIRS // VAL_EVERY
 
