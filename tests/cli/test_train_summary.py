@@ -23,6 +23,7 @@ from shapecorr.cli.train import train
 
 REPO = Path(__file__).resolve().parents[2]
 BENCH = REPO / "benchmarks" / "deep_shells_faust_r.py"
+NM_BENCH = REPO / "benchmarks" / "neuromorph_faust_r.py"
 ACCUMULATE, TRAIN_PAIRS, VAL_EVERY = 2, 4, 2
 TINY = ["debug=tiny", f"trainer.limit_train_batches={TRAIN_PAIRS}", f"trainer.accumulate_grad_batches={ACCUMULATE}",
         f"trainer.val_check_interval={VAL_EVERY}", "trainer.limit_val_batches=1", "test=false",
@@ -35,16 +36,25 @@ def cache_dir(tmp_path_factory):
     return tmp_path_factory.mktemp("summary_cache")
 
 
-@pytest.fixture(scope="module")
-def bench():
-    sys.path.insert(0, str(BENCH.parent))  # the script imports bench_common and training_runs from its folder
+def _load_script(path: Path):
+    sys.path.insert(0, str(path.parent))  # the scripts import bench_common and training_runs from their folder
     try:
-        spec = importlib.util.spec_from_file_location("deep_shells_faust_r", BENCH)
+        spec = importlib.util.spec_from_file_location(path.stem, path)
         module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
     finally:
-        sys.path.remove(str(BENCH.parent))
+        sys.path.remove(str(path.parent))
     return module
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return _load_script(BENCH)
+
+
+@pytest.fixture(scope="module")
+def nm_bench():
+    return _load_script(NM_BENCH)
 
 
 @pytest.fixture(scope="module")
@@ -134,3 +144,30 @@ def test_launch_commands_compose_without_plus_overrides(bench, tmp_path):
     assert checkpoint_callback(cfg, tmp_path)._every_n_train_steps == 100
     assert f"ckpt_path={tmp_path / 'run' / 'checkpoints' / 'last.ckpt'}" in cmds["eval"]
     assert "model=deep_shells_ablation" in cmds["ablation"] and "data=faust_r" in cmds["ablation"]
+
+
+def test_neuromorph_summary_and_launch_commands(tiny_run, nm_bench, tmp_path, capsys):
+    interp = tmp_path / "interp.json"
+    mean = {"cd_mid_neuromorph": 0.25, "cd_mid_blend_soft": 1.5, "cd_mid_blend_hard": 3.0, "chamfer_end": 0.02,
+            "chamfer_end_one_sided": 0.01, "full_cd_mid_neuromorph": 0.3, "full_cd_mid_blend_hard": 3.2,
+            "full_chamfer_end": 0.025, "full_chamfer_end_one_sided": 0.012}
+    interp.write_text(json.dumps({"n_pairs": 2, "time": 0.5, "mean": mean, "pairs": [{"pair": "a__b"}],
+                                  "fraction_of_pairs_neuromorph_below": {
+                                      "cd_mid_blend_soft": 1.0, "cd_mid_blend_hard": 0.5,
+                                      "full_cd_mid_blend_hard": 1.0}}))
+    out = tmp_path / "nm.json"
+    assert nm_bench.main(["--summarize", str(tiny_run), "--interp-json", str(interp), "--out", str(out)]) == 0
+    summary = json.loads(out.read_text())
+    assert summary["interpolation"]["mean"] == mean and "pairs" not in summary["interpolation"]
+    assert [p["pairs_seen"] for p in summary["curve"]["validation"]] == [2, 4]
+    printed = capsys.readouterr().out
+    assert "| linear blend x + t(y[p2p] - x) | 3.000 | 50 % of pairs |" in printed
+    assert "Chamfer X(1) to y (% of sqrt(area)): working resolution 2.00" in printed
+    # the CPU-budget overrides compose against the published experiment
+    cmds = nm_bench.launch_commands(tmp_path / "run", "/data/FAUST_r")
+    train_args = [a for a in cmds["train"][2:] if not a.startswith("hydra.")]
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        cfg = compose("train", overrides=[*train_args, f"paths.output_dir={tmp_path}"])
+    assert cfg.trainer.accumulate_grad_batches == 4 and cfg.trainer.limit_train_batches == 640
+    assert cfg.model.augment.variants == 4 and cfg.model.query_resolution == 2000
+    assert [list(m) for m in cfg.callbacks.neuromorph_T.milestones] == [[0, 0], [6, 1]]
