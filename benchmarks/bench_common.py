@@ -85,3 +85,25 @@ def timed(fn, repeats: int, warmup=None):
 
 def median(values) -> float:
     return float(statistics.median(values))
+
+
+def write_report(path, report: dict) -> Path:
+    """Write ``report`` as indented JSON to ``path`` (parent folders created) and say so; returns the path."""
+    import json
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report, indent=2) + "\n")
+    print(f"wrote {path}")
+    return path
+
+
+def run_command(cmd: list[str], threads: int, cwd) -> None:
+    """Run ``cmd`` in ``cwd`` with ``OMP_NUM_THREADS=threads``, echoing it; exit with a message if it fails."""
+    import subprocess
+    import sys
+
+    print("$", " ".join(cmd), flush=True)
+    proc = subprocess.run(cmd, cwd=cwd, env={**os.environ, "OMP_NUM_THREADS": str(threads)}, check=False)
+    if proc.returncode != 0:
+        sys.exit(f"command failed with status {proc.returncode}: {' '.join(cmd)}")

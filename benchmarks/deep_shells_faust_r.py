@@ -32,9 +32,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -61,14 +59,6 @@ PUBLISHED_FAUST_R_ERROR = 0.017
 
 def _python() -> str:
     return sys.executable
-
-
-def _run(cmd: list[str], threads: int) -> None:
-    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
-    print("$", " ".join(cmd), flush=True)
-    proc = subprocess.run(cmd, cwd=REPO, env=env, check=False)
-    if proc.returncode != 0:
-        raise SystemExit(f"command failed with status {proc.returncode}: {' '.join(cmd)}")
 
 
 def launch_commands(run_dir: Path, faust_r: str | None, with_published: bool) -> dict[str, list[str]]:
@@ -133,7 +123,7 @@ def main(argv=None) -> int:
         cmds = launch_commands(run_dir, args.faust_r, args.with_published)
         for step, cmd in cmds.items():
             if step not in args.skip:
-                _run(cmd, args.threads)
+                bench_common.run_command(cmd, args.threads, REPO)
         folders = {"eval": run_dir / "eval_test", "ablation": run_dir / "eval_ablation",
                    "published": run_dir / "eval_published"}
         eval_dir = args.eval_dir or (folders["eval"] if "eval" not in args.skip else None)
@@ -151,11 +141,8 @@ def main(argv=None) -> int:
         "machine": bench_common.machine_info(),
         **summary,
     }
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2) + "\n")
     print(markdown(summary))
-    print(f"wrote {out}")
+    bench_common.write_report(args.out, report)
     return 0
 
 

@@ -202,10 +202,7 @@ def main(argv=None) -> int:
         report["cases"][case] = result
         print(case, json.dumps(result, indent=1), flush=True)
     report["machine"]["load_average_after"] = list(os.getloadavg())
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"wrote {out}")
+    bench_common.write_report(args.out, report)
     return 0
 
 

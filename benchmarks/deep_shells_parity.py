@@ -203,10 +203,7 @@ def main(argv=None) -> int:
         print(pair, json.dumps(entry, indent=1), flush=True)
 
     report["machine"]["load_average_after"] = list(os.getloadavg())
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"wrote {out}")
+    bench_common.write_report(args.out, report)
     return 0
 
 

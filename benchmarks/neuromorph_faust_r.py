@@ -38,7 +38,6 @@ import argparse
 import datetime
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -68,14 +67,6 @@ CPU_BUDGET_OVERRIDES = (
 PUBLISHED_FAUST_R_ERROR = 0.023
 #: Time of the interpolation comparison and the conformal-distortion clamp of the evaluation.
 MID_TIME, CLAMP = 0.5, 10.0
-
-
-def _run(cmd: list[str], threads: int) -> None:
-    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
-    print("$", " ".join(cmd), flush=True)
-    proc = subprocess.run(cmd, cwd=REPO, env=env, check=False)
-    if proc.returncode != 0:
-        raise SystemExit(f"command failed with status {proc.returncode}: {' '.join(cmd)}")
 
 
 def launch_commands(run_dir: Path, faust_r: str | None) -> dict[str, list[str]]:
@@ -279,7 +270,7 @@ def main(argv=None) -> int:
         run_dir = Path(args.run_dir).absolute()
         for step, cmd in launch_commands(run_dir, args.faust_r).items():
             if step not in args.skip:
-                _run(cmd, args.threads)
+                bench_common.run_command(cmd, args.threads, REPO)
         folders = {"eval": run_dir / "eval_test", "untrained": run_dir / "eval_untrained",
                    "interpolation": run_dir / "interpolation.json"}
         eval_dir, untrained_dir, interp_json = (
@@ -295,11 +286,8 @@ def main(argv=None) -> int:
         "machine": bench_common.machine_info(),
         **summary,
     }
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2) + "\n")
     print(markdown(summary))
-    print(f"wrote {out}")
+    bench_common.write_report(args.out, report)
     return 0
 
 
