@@ -591,7 +591,9 @@ def evaluate_pairs(
                 evaluator(i, j)
                 bar.update()
         else:
-            threads = max(1, (os.cpu_count() or 1) // workers)
+            # each worker gets its share of the CPUs, never more torch threads than this process has (which
+            # honours OMP_NUM_THREADS): oversubscribed OpenMP threads spin and slow everything down
+            threads = max(1, min(torch.get_num_threads(), (os.cpu_count() or 1) // workers))
             ctx = multiprocessing.get_context(start_method)
             with ProcessPoolExecutor(
                 max_workers=min(workers, len(todo)),
