@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -102,6 +103,33 @@ def test_parallel_workers_give_the_same_records(spheres, tmp_path):
 
     assert strip(serial) == strip(parallel)
     assert all(r.mean_error_sym == 0.0 for r in parallel)
+
+
+class ThreadCountMatcher(MapMatcher):
+    """Records the torch thread count it runs with in ``<log_dir>/<pid>.txt``."""
+
+    def __init__(self, shapes, log_dir):
+        super().__init__(shapes)
+        self.log_dir = log_dir
+
+    def match(self, x, y):
+        (self.log_dir / f"{os.getpid()}.txt").write_text(str(torch.get_num_threads()))
+        return super().match(x, y)
+
+
+def test_workers_never_get_more_threads_than_the_parent(spheres, tmp_path, monkeypatch):
+    monkeypatch.setattr(os, "cpu_count", lambda: 8)  # a share of 4 CPUs per worker ...
+    log = tmp_path / "threads"
+    log.mkdir()
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)  # ... but the parent runs with OMP_NUM_THREADS=1
+    try:
+        protocol.evaluate_pairs(ThreadCountMatcher(spheres, log), spheres, [(0, 1), (1, 0), (0, 2), (2, 0)],
+                                tmp_path / "out", workers=2, start_method="fork", progress=False)
+    finally:
+        torch.set_num_threads(before)
+    counts = [int(f.read_text()) for f in log.iterdir()]
+    assert counts and all(c == 1 for c in counts)
 
 
 def test_errors_propagate_from_workers(spheres, tmp_path):
