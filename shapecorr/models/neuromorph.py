@@ -46,6 +46,7 @@ rotation at test time (the original rotated test pairs randomly as well).
 from __future__ import annotations
 
 import functools
+import warnings
 from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -104,10 +105,10 @@ DEFAULT_GEO_TERM = "geo"
 DEFAULT_EVAL_TIMES = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: Query remeshes kept in memory (a validation set's worth; a few hundred kB each).
 QUERY_REMESH_LRU_SIZE = 64
-#: Options the shared run configs (configs/train.yaml, configs/debug/tiny.yaml) set for the default model
-#: (Deep Shells). They mean nothing to NeuroMorph and are accepted and ignored so that ``model=neuromorph``
-#: composes with those files; any other unknown option is an error.
-IGNORED_SHARED_OPTIONS = frozenset({"num_samples", "val_refine_levels", "layer", "num_eigs"})
+#: Deep Shells settings that configs/train.yaml and configs/debug/tiny.yaml passed to every model before they
+#: moved to configs/quick/<model>.yaml; NeuroMorph checkpoints written then carry them in their hyperparameters.
+#: They are dropped with a warning; any other unknown option is an error.
+LEGACY_CHECKPOINT_OPTIONS = frozenset({"num_samples", "val_refine_levels", "layer", "num_eigs"})
 #: Time of the frame compared with the target in the interpolation metrics.
 UNIT_TIME = 1.0
 #: 8-bit color scale of TensorBoard's mesh plugin.
@@ -196,13 +197,18 @@ class NeuroMorph(CorrespondenceModule):
         match_chunk_size: int = DEFAULT_CHUNK_SIZE,
         cache_dir: str | None = None,
         seed: int = 0,
-        **shared_options: Any,
+        **unknown_options: Any,
     ):
         super().__init__()
-        unknown = sorted(set(shared_options) - IGNORED_SHARED_OPTIONS)
+        unknown = sorted(set(unknown_options) - LEGACY_CHECKPOINT_OPTIONS)
         if unknown:
+            # A clear message instead of instantiate's TypeError.
             raise ConfigError(f"neuromorph: unknown option(s) {unknown}")
-        self.save_hyperparameters(ignore=["loss"])
+        if unknown_options:
+            warnings.warn(f"neuromorph: ignoring Deep Shells option(s) {sorted(unknown_options)} (found in "
+                          "checkpoints written before the quick-run settings became per-model configs)",
+                          stacklevel=2)
+        self.save_hyperparameters(ignore=["loss", *unknown_options])
         if not lr > 0:
             raise ConfigError(f"neuromorph: lr must be positive, got {lr}")
         if not sigma > 0:

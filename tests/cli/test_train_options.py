@@ -44,6 +44,12 @@ def test_default_run_trains_on_the_small_synthetic_set(tmp_path):
     tiny = _cfg(tmp_path, "debug=tiny")
     assert dict(tiny.data.synthetic) == {"preset": "tiny", "seed": 0}
     assert Path(tiny.data.root).name == "tiny_seed0"
+    # the model's quick settings (configs/quick/<model>.yaml, debug=tiny: <model>_tiny.yaml)
+    default = _cfg(tmp_path)
+    assert default.model.num_samples == 400 and default.model.layer.refine_levels == 12
+    assert tiny.model.num_samples == 100 and tiny.model.num_eigs == 40 and tiny.model.layer.refine_levels == 4
+    published = _cfg(tmp_path, "model=deep_shells_published", "debug=tiny")
+    assert published.model.num_samples == 100 and published.model.layer.smooth_x == "hard"
     # the published experiment is untouched by the quick defaults
     exp = _cfg(tmp_path, "experiment=deep_shells_faust_r", "data.root=/nonexistent")
     assert exp.model.lr == 1e-4 and exp.model.num_samples == 2000 and exp.model.num_eigs == 200
