@@ -98,6 +98,15 @@ def write_report(path, report: dict) -> Path:
     return path
 
 
+def summary_report(script: str, argv: list[str], summary: dict) -> dict:
+    """A training benchmark's report: ``command`` (``script`` and its arguments), ``date``, ``machine``, then
+    the keys of ``summary``."""
+    import datetime
+
+    return {"command": " ".join([script, *argv]), "date": datetime.datetime.now().isoformat(timespec="seconds"),
+            "machine": machine_info(), **summary}
+
+
 def run_command(cmd: list[str], threads: int, cwd) -> None:
     """Run ``cmd`` in ``cwd`` with ``OMP_NUM_THREADS=threads``, echoing it; exit with a message if it fails."""
     import subprocess

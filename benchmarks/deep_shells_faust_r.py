@@ -31,7 +31,6 @@ Pairs seen: Lightning logs at the optimizer step; a point logged at step ``s`` f
 from __future__ import annotations
 
 import argparse
-import datetime
 import os
 import sys
 from pathlib import Path
@@ -134,13 +133,7 @@ def main(argv=None) -> int:
         run_dir = Path(args.summarize)
         eval_dir, ablation_dir, published_dir = args.eval_dir, args.ablation_dir, args.published_dir
     summary = summarize(run_dir, *(None if d is None else Path(d) for d in (eval_dir, ablation_dir, published_dir)))
-    report = {
-        "command": " ".join([Path(sys.executable).name, *sys.argv]) if argv is None else " ".join(
-            ["deep_shells_faust_r.py", *argv]),
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": bench_common.machine_info(),
-        **summary,
-    }
+    report = bench_common.summary_report("deep_shells_faust_r.py", sys.argv[1:] if argv is None else list(argv), summary)
     print(markdown(summary))
     bench_common.write_report(args.out, report)
     return 0

@@ -35,7 +35,6 @@ Errors are the Princeton protocol's (geodesic distance / sqrt(area)), printed in
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
 import sys
@@ -280,12 +279,7 @@ def main(argv=None) -> int:
         run_dir = Path(args.summarize)
         eval_dir, untrained_dir, interp_json = args.eval_dir, args.untrained_dir, args.interp_json
     summary = summarize(run_dir, *(None if p is None else Path(p) for p in (eval_dir, untrained_dir, interp_json)))
-    report = {
-        "command": " ".join(["neuromorph_faust_r.py", *(sys.argv[1:] if argv is None else argv)]),
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": bench_common.machine_info(),
-        **summary,
-    }
+    report = bench_common.summary_report("neuromorph_faust_r.py", sys.argv[1:] if argv is None else list(argv), summary)
     print(markdown(summary))
     bench_common.write_report(args.out, report)
     return 0
