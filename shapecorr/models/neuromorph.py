@@ -205,8 +205,8 @@ class NeuroMorph(CorrespondenceModule):
             # A clear message instead of instantiate's TypeError.
             raise ConfigError(f"neuromorph: unknown option(s) {unknown}")
         if unknown_options:
-            warnings.warn(f"neuromorph: ignoring Deep Shells option(s) {sorted(unknown_options)} (found in "
-                          "checkpoints written before the quick-run settings became per-model configs)",
+            warnings.warn(f"neuromorph: ignoring Deep Shells option(s) {sorted(unknown_options)}: they mean nothing "
+                          "to NeuroMorph (checkpoints written before configs/quick/ existed carry them)",
                           stacklevel=2)
         self.save_hyperparameters(ignore=["loss", *unknown_options])
         if not lr > 0:

@@ -209,7 +209,7 @@ def test_options_are_validated(tmp_path):
     # Deep Shells keys that old checkpoints carry: dropped with a warning, and not saved again
     with pytest.warns(UserWarning, match="ignoring Deep Shells option"):
         legacy = NeuroMorph(**SMALL, num_samples=3, layer={"k": 1}, val_refine_levels=2, num_eigs=4)
-    assert not {"num_samples", "layer", "val_refine_levels", "num_eigs"} & set(legacy.hparams)
+    assert not nm.LEGACY_CHECKPOINT_OPTIONS & set(legacy.hparams)
     for bad in (dict(typo_option=1), dict(lr=0.0), dict(sigma=-1.0), dict(query_resolution=2),
                 dict(arap_edge_weight_scale=0.0), dict(augment=dict(axis="q")), dict(eval_times=[]),
                 dict(loss={"not": "a loss"}), dict(n_intermediate=-1), dict(n_intermediate=1.5)):
@@ -238,7 +238,7 @@ def _compose(overrides):
 def test_configs_compose_with_the_published_settings(tmp_path):
     cfg = _compose(["model=neuromorph", "debug=tiny", f"paths.cache_dir={tmp_path}", f"paths.output_dir={tmp_path}"])
     # the run configs' Deep Shells settings (configs/quick/) do not reach another model
-    assert not {"num_samples", "layer", "val_refine_levels", "num_eigs"} & set(cfg.model)
+    assert not nm.LEGACY_CHECKPOINT_OPTIONS & set(cfg.model)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         model = instantiate(cfg.model, _convert_="object")
