@@ -116,6 +116,44 @@ def test_training_step_finite_loss_and_gradients_reach_both_networks(pair, tmp_p
     assert len(list((tmp_path / "remesh").rglob("*.npz"))) <= 4
 
 
+def _feature_gradient(model: NeuroMorph, pair, **weights) -> float:
+    """Total |gradient| of the feature net after one training step with the given loss weights."""
+    for term, weight in weights.items():
+        model.loss.set_weight(term, weight)
+    model.zero_grad()
+    model.training_step(pair, 0).backward()
+    return sum(float(p.grad.abs().sum()) for p in model.feature_net.parameters() if p.grad is not None)
+
+
+def test_map_gradient_geodesic_lets_only_the_geodesic_term_train_the_features(pair, tmp_path):
+    published = _model(tmp_path)
+    assert published.map_gradient == "all"
+    assert _feature_gradient(published, pair, geo=0.0) > 0  # published: registration + ARAP reach the features
+    model = _model(tmp_path, map_gradient="geodesic")
+    assert _feature_gradient(model, pair, geo=0.0) == 0.0
+    assert sum(float(p.grad.abs().sum()) for p in model.interpolator.parameters()) > 0  # still trained
+    assert _feature_gradient(model, pair, geo=50.0, registration=0.0, arap=0.0) > 0
+    # the geodesic term's own gradient is the same in both modes; and so are the loss values
+    only_geo = dict(geo=50.0, registration=0.0, arap=0.0)
+    reference = _model(tmp_path)
+    _feature_gradient(reference, pair, **only_geo)
+    _feature_gradient(model, pair, **only_geo)
+    for a, b in zip(reference.feature_net.parameters(), model.feature_net.parameters()):
+        torch.testing.assert_close(a.grad, b.grad)
+    for term in ("registration", "arap", "geo"):
+        reference.loss.set_weight(term, nm.DEFAULT_LOSS_WEIGHTS[term])
+        model.loss.set_weight(term, nm.DEFAULT_LOSS_WEIGHTS[term])
+    with torch.no_grad():
+        assert float(model.training_step(pair, 0)) == pytest.approx(float(reference.training_step(pair, 0)), rel=1e-5)
+    # a schedule can switch it, and a bad value is refused
+    EpochSchedule("map_gradient", [[0, "geodesic"], [3, "all"]]).apply(model, 4)
+    assert model.map_gradient == "all"
+    with pytest.raises(ConfigError, match="map_gradient"):
+        model.map_gradient = "registration"
+    with pytest.raises(ConfigError, match="map_gradient"):
+        NeuroMorph(**SMALL, map_gradient="none")
+
+
 def test_geodesics_are_skipped_while_lambda_geo_is_zero(pair, tmp_path, monkeypatch):
     model = _model(tmp_path)
     spy = model.loss = LossSpy(model.loss)
