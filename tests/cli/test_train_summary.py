@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
 
 from shapecorr.cli.common import EXIT_INVALID_INPUT
 from shapecorr.cli.train import train
@@ -171,3 +172,17 @@ def test_neuromorph_summary_and_launch_commands(tiny_run, nm_bench, tmp_path, ca
     assert cfg.trainer.accumulate_grad_batches == 4 and cfg.trainer.limit_train_batches == 640
     assert cfg.model.augment.variants == 4 and cfg.model.query_resolution == 2000
     assert [list(m) for m in cfg.callbacks.neuromorph_T.milestones] == [[0, 0], [6, 1]]
+
+
+def test_neuromorph_geodesic_map_variant_composes(nm_bench, tmp_path):
+    overrides, out = nm_bench.VARIANTS["geodesic-map"]
+    assert out.name == "neuromorph_faust_r_geodesic_map.json"
+    cmds = nm_bench.launch_commands(tmp_path / "run", "/data/FAUST_r", overrides)
+    train_args = [a for a in cmds["train"][2:] if not a.startswith("hydra.")]
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        cfg = compose("train", overrides=[*train_args, f"paths.output_dir={tmp_path}"])
+    assert cfg.model.map_gradient == "geodesic" and cfg.model.lr == pytest.approx(1e-3)
+    assert cfg.trainer.max_time == "00:01:55:00" and cfg.trainer.accumulate_grad_batches == 4
+    assert [list(m) for m in cfg.callbacks.neuromorph_lambda_geo.milestones] == [[0, 50.0], [8, 0.0]]
+    model = instantiate(cfg.model, _convert_="object")
+    assert model.map_gradient == "geodesic"
