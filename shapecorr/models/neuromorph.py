@@ -366,6 +366,7 @@ class NeuroMorph(CorrespondenceModule):
         epoch_log = dict(batch_size=1, on_step=False, on_epoch=True)
         self.log("schedule/T", float(self.n_intermediate), **epoch_log)
         self.log("schedule/lambda_geo", self.lambda_geo, **epoch_log)
+        self.log("schedule/map_gradient_all", float(self.map_gradient == "all"), **epoch_log)
         self.log("train/n_verts", float(x.shape.n_verts + y.shape.n_verts) / 2.0, **epoch_log)
         return total
 

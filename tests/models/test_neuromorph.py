@@ -361,7 +361,8 @@ def test_train_cli_tiny_smoke_run(tmp_path):
     events = EventAccumulator(str(run_dir / "tensorboard")).Reload()
     scalars = set(events.Tags()["scalars"])
     for tag in ("train/loss_step", "train/registration_step", "train/arap_step", "train/geo_step", "schedule/T",
-                "schedule/lambda_geo", "val/geodesic_error", "val/chamfer", "val/deformation_conformal_distortion"):
+                "schedule/lambda_geo", "schedule/map_gradient_all", "val/geodesic_error", "val/chamfer",
+                "val/deformation_conformal_distortion"):
         assert tag in scalars, (tag, sorted(scalars))
     assert "val/interpolation/strip" in events.Tags()["images"]
     state = torch.load(last, map_location="cpu", weights_only=False)
