@@ -82,7 +82,7 @@ class TermRecorder:
     def __call__(self, **inputs):
         total, values = self.inner(**inputs)
         for name, value in values.items():
-            self.terms[name] = self.terms.get(name, 0.0) + float(value) / self.n_pairs
+            self.terms[name] = self.terms.get(name, 0.0) + float(value.detach()) / self.n_pairs
         return total, values
 
 
