@@ -54,18 +54,16 @@ def pair_errors(model, augmented) -> list[float]:
     """Mean geodesic error (percent of sqrt(area(y))) of the argmax map on each augmented pair."""
     import torch
 
-    from shapecorr.eval.metrics import surface_area
+    from shapecorr.eval.metrics import geodesic_errors, surface_area
     from shapecorr.nn.neuromorph import interpolation_times
 
     errors = []
     with torch.no_grad():
         for aug in augmented:
             x, y = aug.pair.x, aug.pair.y
-            pi = model.forward_pair(x, y, interpolation_times(0))["pi_x_to_y"]
-            p2p = pi.argmax(1)
-            dist = aug.dist_y[p2p[x.corres.long()], y.corres.long()]
-            scale = np.sqrt(surface_area(y.verts.double().numpy(), y.faces.numpy()))
-            errors.append(PERCENT * float(dist.mean()) / scale)
+            p2p = model.forward_pair(x, y, interpolation_times(0))["pi_x_to_y"].argmax(1)
+            sqrt_area = np.sqrt(surface_area(y.verts.double().numpy(), y.faces.numpy()))
+            errors.append(PERCENT * float(geodesic_errors(p2p, aug.dist_y, x.corres, y.corres, sqrt_area).mean()))
     return errors
 
 
