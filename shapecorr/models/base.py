@@ -18,11 +18,16 @@ validation set.
 
 from __future__ import annotations
 
+import functools
 import time
 from collections import OrderedDict
+from typing import Any, Callable, Iterable
 
 import numpy as np
 import pytorch_lightning as pl
+import torch
+
+from shapecorr.errors import ConfigError
 
 from shapecorr.eval import metrics
 from shapecorr.eval.protocol import score_map
@@ -31,6 +36,50 @@ from shapecorr.viz.tensorboard import log_correspondence_meshes, log_pck_figure
 
 #: Geodesic matrices kept in memory by a model during validation/test (100 MB each at 5k vertices).
 GEODESIC_LRU_SIZE = 8
+
+
+#: An optimizer factory: ``hydra.utils.instantiate`` of a ``_partial_: true`` node, called with the parameters.
+OptimizerFactory = Callable[[Iterable[torch.nn.Parameter]], torch.optim.Optimizer]
+#: An LR-scheduler factory (``_partial_: true`` node), called with the optimizer.
+SchedulerFactory = Callable[[torch.optim.Optimizer], Any]
+
+
+def adam(lr: float) -> OptimizerFactory:
+    """Adam with learning rate ``lr``: the optimizer factory used when a model gets no ``optimizer`` node."""
+    if not lr > 0:
+        raise ConfigError(f"optimizer: lr must be positive, got {lr}")
+    return functools.partial(torch.optim.Adam, lr=float(lr))
+
+
+def build_optimizers(
+    parameters: Iterable[torch.nn.Parameter],
+    optimizer: OptimizerFactory,
+    scheduler: SchedulerFactory | None = None,
+    scheduler_interval: str = "epoch",
+):
+    """What ``configure_optimizers`` returns for a model with the given factories.
+
+    Parameters
+    ----------
+    parameters
+        The trainable parameters (those with ``requires_grad``; an empty list returns ``None``: nothing to learn).
+    optimizer
+        Optimizer factory, e.g. the ``model.optimizer`` node ``{_target_: torch.optim.Adam, _partial_: true, lr: 1e-4}``.
+    scheduler
+        Optional LR-scheduler factory (``model.scheduler`` node), stepped every ``scheduler_interval``
+        (``"epoch"`` or ``"step"``).
+    """
+    params = [p for p in parameters if p.requires_grad]
+    if not params:
+        return None
+    if not callable(optimizer):
+        raise ConfigError(f"model.optimizer must be an optimizer factory (a _partial_: true node), got {optimizer!r}")
+    opt = optimizer(params)
+    if scheduler is None:
+        return opt
+    if scheduler_interval not in ("epoch", "step"):
+        raise ConfigError(f"model.scheduler_interval must be 'epoch' or 'step', got {scheduler_interval!r}")
+    return {"optimizer": opt, "lr_scheduler": {"scheduler": scheduler(opt), "interval": scheduler_interval}}
 
 
 class CorrespondenceModule(pl.LightningModule):
