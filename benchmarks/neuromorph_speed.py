@@ -72,7 +72,7 @@ from shapecorr.losses.registration import registration_loss
 from shapecorr.matching.softmax import DEFAULT_SIGMA, hard_maps, softmax_soft_maps
 from shapecorr.nn.neuromorph import NeuroMorphFeatureNet, NeuroMorphInterpolator, interpolation_times
 
-#: Target number of vertices (NeuroMorph trains on 2000-vertex FAUST_r remeshes, methods-digest §4.1).
+#: Target number of vertices (NeuroMorph trains on 2000-vertex FAUST_r remeshes, docs/neuromorph.md §2).
 TARGET_VERTS = 2000
 #: Icosphere subdivision level of the synthetic shapes before decimation (2562 vertices).
 SYNTH_SUBDIVISIONS = 4

@@ -1,7 +1,7 @@
 """Lightning data module over pairs of shapes.
 
 Splits and pairing come from the data config (``configs/data/*.yaml``). One pair per batch: meshes differ in
-size, so batching happens by gradient accumulation in the Trainer (design.md, "Tensors and shapes").
+size, so batching happens by gradient accumulation in the Trainer (docs/architecture.md §2).
 """
 
 from __future__ import annotations

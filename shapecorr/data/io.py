@@ -65,7 +65,7 @@ MESH_READ_EXTENSIONS = (".off", ".ply", ".obj")
 #: Mesh formats :func:`write_mesh` writes.
 MESH_WRITE_EXTENSIONS = (".off", ".ply")
 #: Index base of each correspondence format (see the module docstring).
-# `.txt` maps are zero-based: shapecorr writes maps/<x>__<y>.txt that way (design.md); read SHREC-style one-based
+# `.txt` maps are zero-based, as shapecorr writes maps/<x>__<y>.txt (docs/evaluation.md §6); read SHREC-style one-based
 # `.txt` files with one_based=True.
 CORRESPONDENCE_ONE_BASED = {".vts": True, ".map": False, ".txt": False}
 

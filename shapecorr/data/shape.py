@@ -1,6 +1,6 @@
 """The :class:`Shape` record and the normalization every shape goes through on load.
 
-Normalization (design.md, "Units"): translate so that the centroid is at the origin, then scale uniformly
+Normalization (CONVENTIONS.md, "Units"): translate so that the centroid is at the origin, then scale uniformly
 so that the total surface area equals ``target_area``. The default ``target_area = (2/3)**2`` gives
 sqrt(area) = 2/3; the original MATLAB pipeline of Smooth/Deep Shells used ``target_area = 0.44``
 with the plain vertex mean as centroid (``center="mean"``) — both are reachable through
@@ -18,7 +18,7 @@ import torch
 
 from shapecorr.errors import ConfigError, InvalidMeshError
 
-#: Default total area after normalization: sqrt(area) = 2/3 (design.md; Deep Shells used 0.44 ~ (2/3)^2).
+#: Default total area after normalization: sqrt(area) = 2/3 (CONVENTIONS.md; Deep Shells used 0.44 ~ (2/3)^2).
 DEFAULT_TARGET_AREA = (2.0 / 3.0) ** 2
 
 

@@ -1,6 +1,6 @@
 """Writing evaluation outputs to disk: point-to-point maps and interpolation sequences.
 
-Layout under an output folder (design.md, "Outputs of evaluate.py"; issue 6 for the ``interp`` names)::
+Layout under an output folder (docs/evaluation.md §6; issue 6 for the ``interp`` names)::
 
     maps/<x>__<y>.txt               one zero-based target index per line, one line per source vertex
     maps/<x>__<y>.npy               the same map as an int64 array

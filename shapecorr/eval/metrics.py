@@ -1,6 +1,6 @@
 """Correspondence and deformation metrics (pure numpy functions).
 
-Geodesic error (design.md "Evaluation protocol", Princeton benchmark; methods-digest §7)
+Geodesic error (Princeton benchmark; docs/evaluation.md §1)
     For a pair (X, Y), reference points r = 1..R with vertex indices ``ref_x[r]`` on X and ``ref_y[r]`` on Y,
     and a point-to-point map ``p2p`` from X to Y, the error of reference point r is
     ``e_r = d_Y(p2p[ref_x[r]], ref_y[r]) / sqrt(area(Y))`` with ``d_Y`` the geodesic distance on Y. The
@@ -12,7 +12,7 @@ PCK curve
     the curve divided by the threshold range, so that a perfect map has AUC 1.
 
 Conformal distortion (scale-invariant; a choice documented here)
-    The Hamiltonian-interpolation evaluation (methods-digest §5.7) measures, per triangle,
+    The Hamiltonian-interpolation evaluation (docs/evaluation.md §3) measures, per triangle,
     ``tr(M^T M) / det(M) - 3`` with ``M = G + n n^T``, G the pull-back metric of the deformed triangle
     in the rest triangle's plane. With singular values s1 >= s2 of the triangle's Jacobian, G has eigenvalues
     s1², s2² and the normal direction contributes an eigenvalue 1, which is what makes that number
@@ -32,7 +32,7 @@ Conformal distortion (scale-invariant; a choice documented here)
 
 Chamfer distance
     Two-sided: ``mean_a min_b |a - b| + mean_b min_a |b - a|`` (unsquared, in the units of the points).
-    One-sided (the variant of the interpolation papers, methods-digest §5.7): only the first term, from the
+    One-sided (the variant of the interpolation papers, docs/evaluation.md §4): only the first term, from the
     deformed source to the target.
 
 Volume change and cycle consistency
@@ -54,12 +54,12 @@ from scipy.spatial import cKDTree
 from shapecorr.data.shape import triangle_areas
 from shapecorr.errors import CorrespondenceError, InvalidMeshError, NumericalError
 
-#: Largest PCK threshold, as a fraction of sqrt(area) (design.md evaluation protocol: thresholds 0..0.25).
+#: Largest PCK threshold, as a fraction of sqrt(area) (docs/evaluation.md §2: thresholds 0..0.25).
 PCK_MAX_THRESHOLD = 0.25
 #: Number of PCK thresholds: steps of 0.0025 over [0, 0.25].
 PCK_N_THRESHOLDS = 101
 #: Per-triangle conformal distortion is clamped at this value, as in the evaluation of the Hamiltonian
-#: interpolation paper (methods-digest §5.7: ``min(|...|, 10)``); collapsed triangles get it.
+#: interpolation paper (docs/evaluation.md §3: ``min(|...|, 10)``); collapsed triangles get it.
 CONFORMAL_DISTORTION_CLAMP = 10.0
 #: A rest triangle whose area is below this fraction of the mean triangle area has no defined shape; it gets
 #: the clamp value and weight zero in means.
@@ -155,7 +155,7 @@ def ground_truth_indices(corres_x, corres_y, n_x: int, n_y: int, faces_x=None, f
 
     With ``.vts`` files on both shapes, entry r of each is the same point (FAUST_r/SCAPE_r convention).
     Without ground truth on either shape, two shapes with the same connectivity correspond vertex by vertex
-    (design.md protocol: the ground truth is the identity).
+    (docs/evaluation.md §1: the ground truth is the identity).
 
     Parameters
     ----------
@@ -367,7 +367,7 @@ def chamfer_distance(points_a, points_b, one_sided: bool = False) -> float:
         E.g. the target.
     one_sided : bool
         False: ``mean_a d(a, B) + mean_b d(b, A)``. True: ``mean_a d(a, B)`` only, the variant reported by
-        the interpolation papers (methods-digest §5.7; they average 10000 samples drawn with replacement,
+        the interpolation papers (docs/evaluation.md §4; they average 10000 samples drawn with replacement,
         we average over all points).
 
     Returns
@@ -431,7 +431,7 @@ def relative_volume_change(verts_rest, faces, verts_deformed) -> float:
 
 
 def volume_change_score(verts_rest, faces, verts_deformed) -> float:
-    """Symmetric volume score ``r + 1/r - 2`` with ``r = V(deformed)/V(rest)`` (interpolation papers, digest §5.7).
+    """Symmetric volume score ``r + 1/r - 2`` with ``r = V(deformed)/V(rest)`` (docs/evaluation.md §4).
 
     Zero when the volume is preserved, the same for shrinking and growing by the same factor.
 

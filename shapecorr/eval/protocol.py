@@ -1,6 +1,6 @@
 """Per-pair evaluation: run a matcher on one ordered pair, score its map against the ground truth, store it.
 
-Protocol (design.md "Evaluation protocol"; methods-digest §7): for a pair (X, Y) the map X -> Y is scored at
+Protocol (docs/evaluation.md §1): for a pair (X, Y) the map X -> Y is scored at
 the reference points of the ground truth (``corres/<name>.vts``; the identity for shapes sharing their
 connectivity without ``.vts``) with geodesic distances on Y from the shape cache, normalized by sqrt(area(Y))
 computed from Y's faces. When Y has a mirrored ground truth (``.sym.vts``) the same map is also scored
@@ -124,7 +124,7 @@ class EvalSettings:
     Attributes
     ----------
     geodesics : {"heat", "exact"}
-        Geodesic distances used for the errors (``exact`` for final numbers, methods-digest §7).
+        Geodesic distances used for the errors (``exact`` for final numbers, docs/evaluation.md §1).
     conformal_clamp : float
         Per-triangle clamp of the conformal distortion.
     write_maps : bool
@@ -212,7 +212,7 @@ def unit_time_index(times, atol: float = TIME_ATOL) -> int | None:
 def score_deformation(
     frames, x, y, clamp: float = metrics.CONFORMAL_DISTORTION_CLAMP, times=None
 ) -> dict[str, float | None]:
-    """Metrics of an interpolation of x towards y (methods-digest §5.7, scale-invariant where it matters).
+    """Metrics of an interpolation of x towards y (docs/evaluation.md §4, scale-invariant where it matters).
 
     Parameters
     ----------

@@ -23,7 +23,7 @@ All variants are invariant to rigid motions (they only depend on the intrinsic e
 must be those of :func:`shapecorr.geometry.laplace_beltrami.eigenbasis` (mass-orthonormal); eigenvalues in the
 original Smooth/Deep Shells scale are 2x ours (``ORIGINAL_EIGENVALUE_FACTOR``).
 
-Smooth Shells' HKS (methods-digest §1.3: 200 eigenpairs without the constant, 100 times log-spaced in
+Smooth Shells' HKS (docs/deep_shells.md §2: 200 eigenpairs without the constant, 100 times log-spaced in
 [0.002, 0.05] in the doubled eigenvalue scale, raw sums) is::
 
     hks(ORIGINAL_EIGENVALUE_FACTOR * evals[:200], evecs[:, :200], t_min=0.002, t_max=0.05, n_times=100,

@@ -13,7 +13,7 @@ Two methods, both from libraries:
 
 All pairs (``sources=None``): the heat method is not symmetric, so the returned matrix is the symmetrized
 ``(D + D^T) / 2`` with an exact zero diagonal (NeuroMorph's MATLAB preprocessing symmetrizes its
-fast-marching matrices the same way, methods-digest §4.1); the exact method is symmetric up to round-off and
+fast-marching matrices the same way, docs/neuromorph.md §2); the exact method is symmetric up to round-off and
 gets the same treatment.
 
 Disconnected meshes: the distance between vertices of different components is infinite. By default a

@@ -11,7 +11,7 @@ unit sphere ``lambda_l = l (l + 1)``.
 
 Eigenvalue scale of the original code: the MATLAB preprocessing of Smooth Shells / Deep Shells / G-MSM
 builds its stiffness with the full ``cot a + cot b`` weight, so every eigenvalue stored in their ``.mat``
-files is exactly ``ORIGINAL_EIGENVALUE_FACTOR = 2`` times ours (methods-digest §0.3). Hyperparameters
+files is exactly ``ORIGINAL_EIGENVALUE_FACTOR = 2`` times ours (docs/deep_shells.md §2). Hyperparameters
 published in that scale (spectral filter scale 5e4, HKS times [0.002, 0.05]) need
 ``ORIGINAL_EIGENVALUE_FACTOR * evals`` (or rescaled parameters) to mean the same thing here.
 
@@ -42,11 +42,11 @@ except ImportError:  # pragma: no cover - only slower without it
     threadpool_limits = None
 
 #: The original Smooth Shells / Deep Shells / G-MSM stiffness uses cot a + cot b (not 1/2 of it), so their
-#: eigenvalues are exactly this factor times ours (methods-digest §0.3).
+#: eigenvalues are exactly this factor times ours (docs/deep_shells.md §2).
 ORIGINAL_EIGENVALUE_FACTOR = 2.0
 
 #: Vertices whose lumped mass is below this are removed from the eigen solve (MATLAB preprocessing of
-#: Smooth Shells / Deep Shells, methods-digest §0.3). Absolute, in squared units of the input.
+#: Smooth Shells / Deep Shells, docs/deep_shells.md §2). Absolute, in squared units of the input.
 DEFAULT_MIN_MASS = 1e-14
 
 #: Mollification of the tufted-cover Laplacian (robust_laplacian's default, Sharp & Crane 2020 §4.2).

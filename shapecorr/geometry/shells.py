@@ -6,7 +6,7 @@ frequencies: the hard truncation ``X_k = Phi[:, :k] xi[:k]``, or the sigmoid-wei
 Shells (Eisenberger et al., CVPR 2020, eq. 8) ``X_k = Phi[:, :k'] (w * xi[:k'])`` whose weights fall from 1
 to 0 around index k.
 
-Sigmoid weights (methods-digest §1.1): with truncation threshold ``eps = 1e-2`` and smoothing width s = 10,
+Sigmoid weights (docs/deep_shells.md §4): with truncation threshold ``eps = 1e-2`` and smoothing width s = 10,
 
 - k >= s: slope t = -ln(1/(1-eps) - 1)/(s-1); w_j = 1/(1+exp(t j)) for j = -(k-1) .. s-1 (k+9 weights);
 - 2 <= k < s: slope t = -ln(1/(1-eps) - 1)/(k-1); j = -(k-1) .. k-1 (2k-1 weights);

@@ -30,7 +30,7 @@ For a vertex p with neighbours q_j (mesh vertices with 0 < |q_j - p| <= R):
 
 ``legacy=True`` (the default) reproduces three quirks of the C++ implementation that produced the SHOT
 of the Smooth Shells / Deep Shells preprocessing (Rodola's ``calc_shot`` mex over the authors' code,
-methods-digest sec. 0.6), so that features match the published pipelines and their checkpoints:
+docs/deep_shells.md §2), so that features match the published pipelines and their checkpoints:
 
 - the frame weights use *squared* distances, w_j = R_lrf - |q_j - p|^2 (the FLANN radius search
   returns squared distances and the frame code treats them as distances). This depends on the units,
@@ -73,7 +73,7 @@ from scipy.spatial import cKDTree
 from shapecorr.errors import ConfigError, InvalidMeshError, NumericalError
 
 #: Support radius as a fraction of sqrt(total surface area) (Smooth/Deep Shells MATLAB preprocessing,
-#: methods-digest sec. 0.6: radius = 5 * sqrt(area) / 100).
+#: docs/deep_shells.md §2: radius = 5 * sqrt(area) / 100).
 SHOT_RADIUS_FRACTION = 0.05
 #: Number of cosine bins (Tombari et al. 2010; Deep Shells preprocessing).
 SHOT_N_BINS = 10
@@ -81,7 +81,7 @@ SHOT_N_BINS = 10
 SHOT_MIN_NEIGHBORS = 3
 #: The original C++ refuses to build a local frame from fewer than 5 neighbours (descriptor left zero).
 SHOT_MIN_LRF_NEIGHBORS = 5
-#: Total area at which the MATLAB pipeline computed SHOT (methods-digest sec. 0.6); only used by
+#: Total area at which the MATLAB pipeline computed SHOT (docs/deep_shells.md §2); only used by
 #: ``legacy=True``, whose squared-distance frame weights depend on the units.
 SHOT_REFERENCE_AREA = 1.93e4
 #: Spatial grid of the paper: 8 azimuth x 2 elevation x 2 radial sectors.

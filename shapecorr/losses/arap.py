@@ -14,7 +14,7 @@ v_0[a]`` and ``e_t = v_t[b] - v_t[a]`` for every edge ``(a, b)`` of weight ``w_e
     the NeuroMorph paper (eq. 5). With optimal rotations it is symmetric in the two poses:
     ``E(V_0 -> V_t) = E(V_t -> V_0)``, since ``min_R ||e_t - R e_0|| = min_R ||e_0 - R^T e_t||``.
   - ``"average"``: ``sum_e w_e ||e_t - 0.5 (R_a + R_b) e_0||^2``, what the NeuroMorph code computes
-    (methods-digest §4.5). ``0.5 (R_a + R_b)`` is not a rotation, and the ``R_i`` are not the minimizers of
+    (docs/neuromorph.md §6). ``0.5 (R_a + R_b)`` is not a rotation, and the ``R_i`` are not the minimizers of
     this energy.
 
 Gradients and the rotations (``detach_rotations``):
@@ -44,7 +44,7 @@ import torch
 from shapecorr.errors import ConfigError, NumericalError
 
 ARAP_MODES = ("both-sides", "average")
-#: NeuroMorph code: every ARAP evaluation adds 1e-6 * ||V_t - V_0||^2 (methods-digest §4.5).
+#: NeuroMorph code: every ARAP evaluation adds 1e-6 * ||V_t - V_0||^2 (docs/neuromorph.md §6).
 NEUROMORPH_DISPLACEMENT_WEIGHT = 1e-6
 #: Regularization of the polar-factor backward: singular-value sums s_i + s_j below this fraction of the mean
 #: largest singular value (over the batch) are damped as 1 / (s_i + s_j) -> d / (d^2 + eps^2). Project choice:
@@ -277,7 +277,7 @@ def arap_sequence_loss(
     """NeuroMorph's E_arap over an interpolation sequence, both directions between consecutive frames.
 
     ``sum_k [ARAP(F_k -> F_k+1) + ARAP(F_k+1 -> F_k)] + 2 * displacement_weight * sum_k ||F_k+1 - F_k||^2``
-    (methods-digest §4.5: the original adds ``1e-6 ||V_t - V_0||^2`` to each of its ARAP evaluations). The
+    (docs/neuromorph.md §6: the original adds ``1e-6 ||V_t - V_0||^2`` to each of its ARAP evaluations). The
     evaluations run as one batch. The "both-sides" energy is symmetric in its two poses, so it is evaluated
     in one direction and doubled (same value and gradient, half the SVDs); "average" is not symmetric and
     is evaluated both ways.

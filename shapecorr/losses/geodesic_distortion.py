@@ -2,7 +2,7 @@
 
 For a soft map ``Pi`` (n_x, n_y) from x to y and the geodesic distance matrices ``D_x`` (n_x, n_x) and
 ``D_y`` (n_y, n_y), the distances of y pulled back to x are ``Pi D_y Pi^T``; NeuroMorph (Eisenberger et al.,
-CVPR 2021, eq. 7; methods-digest §4.5) penalizes their mean squared deviation from ``D_x``:
+CVPR 2021, eq. 7; docs/neuromorph.md §6) penalizes their mean squared deviation from ``D_x``:
 
     E_geo = mean((Pi D_y Pi^T - D_x)^2)         (the mean over the n_x^2 entries)
 

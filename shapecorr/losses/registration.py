@@ -1,6 +1,6 @@
 """Registration (alignment) loss between a deformed shape and its soft correspondence (NeuroMorph E_align).
 
-NeuroMorph (Eisenberger et al., CVPR 2021, eq. 6; methods-digest §4.5) asks the end point ``X(1)`` of the
+NeuroMorph (Eisenberger et al., CVPR 2021, eq. 6; docs/neuromorph.md §6) asks the end point ``X(1)`` of the
 interpolation of x towards y to coincide with y *through the soft maps*, both ways:
 
     E_align = c * ( ||Pi Y - X(1)||^2 + ||Y - Pi_inv X(1)||^2 )
@@ -18,7 +18,7 @@ import torch
 
 from shapecorr.errors import ConfigError, NumericalError
 
-#: Numerator of the NeuroMorph code's alignment normalization c = 201 / n_x (methods-digest §4.5).
+#: Numerator of the NeuroMorph code's alignment normalization c = 201 / n_x (docs/neuromorph.md §6).
 ORIGINAL_ALIGN_NUMERATOR = 201.0
 REDUCTIONS = ("original", "mean", "sum")
 

@@ -1,7 +1,7 @@
 """Deep Shells: the differentiable hierarchical matching layer and its test-time refinement.
 
 Eisenberger, Toker, Leal-Taixé, Cremers, "Deep Shells: Unsupervised Shape Correspondence with Optimal
-Transport", NeurIPS 2020 (methods-digest §2.3, §2.4). Pure functions on tensors; the LightningModule that
+Transport", NeurIPS 2020 (docs/deep_shells.md §6, §8). Pure functions on tensors; the LightningModule that
 wraps them lives in ``shapecorr.models``.
 
 Training layer (:func:`deep_shells_layer`), for a pair (X, Y) and features at sampled vertices:
@@ -38,7 +38,7 @@ axiomatic refinement :func:`refine_deep_shells`: 40 log-spaced shell sizes from 
 nearest neighbours, :mod:`shapecorr.matching.nearest_neighbors`). Unlike the original, the OT level's
 second Sinkhorn (whose plan the original computes and discards) is skipped.
 
-Decisions on the points the methods digest marks [BUG?] (``DeepShellsConfig.original()`` restores all of the
+Decisions on the [BUG?] points of docs/deep_shells.md §9 (``DeepShellsConfig.original()`` restores all of the
 original Python behaviour, and is what the parity test uses):
 
 - Shell of X (``smooth_x``): the Deep Shells code truncates X hard at ``k`` but smooths Y with the sigmoid

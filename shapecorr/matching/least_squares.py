@@ -5,7 +5,7 @@ The shell methods (Deep Shells, Smooth Shells) fit a functional map ``C`` and a 
 thousands of rows). The original code solved the normal equations ``(A^T A) X = A^T B`` in float32 without
 regularization; with duplicated or nearest-neighbour pairs at large k, ``A^T A`` can be badly conditioned.
 Here the Gram matrix is accumulated and factorized in float64 and a tiny ridge proportional to its mean
-diagonal is added (methods-digest §8, recommendation 1), which leaves well-posed problems unchanged to far
+diagonal is added (docs/deep_shells.md §9), which leaves well-posed problems unchanged to far
 below float32 precision and makes rank-deficient ones solvable.
 
 The functions are split so that methods can add their own terms (ARAP, descriptor or Laplacian penalties in
@@ -22,7 +22,7 @@ from shapecorr.errors import ConfigError, NumericalError
 #: Ridge added to the normal equations, relative to the mean diagonal of the Gram matrix. Tiny on purpose:
 #: float64 Gram matrices are accurate to ~1e-16 relative, so 1e-8 only matters where the problem is
 #: (numerically) rank deficient, and it changes well-posed float32 results far below float32 resolution.
-#: The originals use no ridge (methods-digest §2.3 step 2; §8 recommends "a tiny ridge, e.g. 1e-8*trace/k").
+#: The originals use no ridge (docs/deep_shells.md §6, §9).
 DEFAULT_RIDGE = 1e-8
 
 

@@ -1,6 +1,6 @@
 """Entropic optimal transport by a fixed number of Sinkhorn iterations (the Deep Shells soft matching).
 
-Algorithm (Deep Shells, Eisenberger et al. NeurIPS 2020; methods-digest §2.3): given a cost matrix
+Algorithm (Deep Shells, Eisenberger et al. NeurIPS 2020; docs/deep_shells.md §5): given a cost matrix
 ``D (n, m) >= 0`` (squared distances of embeddings),
 
 1. ``D <- D / mean(D)`` (scale invariance of the temperature);

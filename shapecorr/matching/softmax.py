@@ -1,6 +1,6 @@
 """Soft correspondences from per-vertex features by a row softmax of cosine similarities (NeuroMorph).
 
-NeuroMorph (Eisenberger et al., CVPR 2021, §3.2; methods-digest §4.3) matches two shapes through their
+NeuroMorph (Eisenberger et al., CVPR 2021, §3.2; docs/neuromorph.md §4) matches two shapes through their
 L2-normalized features: with ``S = F_x F_y^T`` (cosine similarities, in [-1, 1])
 
     Pi     = softmax_rows(sigma * S)        (n_x, n_y), row-stochastic: soft map x -> y

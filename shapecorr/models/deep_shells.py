@@ -1,6 +1,6 @@
 """Deep Shells as a LightningModule: spectral filter bank on SHOT -> hierarchical OT layer -> mean level energy.
 
-Eisenberger, Toker, Leal-Taixé, Cremers, NeurIPS 2020 (methods-digest §2). The module is thin: the learned
+Eisenberger, Toker, Leal-Taixé, Cremers, NeurIPS 2020 (docs/deep_shells.md). The module is thin: the learned
 features come from :class:`~shapecorr.nn.spectral_conv.SpectralFilterBank` (or, for the "no learning"
 ablation ``backbone="identity"``, the raw descriptor), the matching and the loss from
 :func:`~shapecorr.matching.deep_shells.deep_shells_layer`, test-time maps from
@@ -57,7 +57,7 @@ from shapecorr.nn.spectral_conv import (
     load_original_deep_shells_weights,
 )
 
-#: Deep Shells optimizer: Adam with learning rate 1e-4 (methods-digest §2.3, train.py of the original).
+#: Deep Shells optimizer: Adam with learning rate 1e-4 (docs/deep_shells.md §10, train.py of the original).
 DEFAULT_LR = 1e-4
 #: Input descriptor of the published network (SHOT, 352 channels).
 DEFAULT_DESCRIPTOR = "shot"

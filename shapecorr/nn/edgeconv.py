@@ -1,6 +1,6 @@
 """EdgeConv with residual MLP blocks over mesh edges, and the ResnetEC network of NeuroMorph.
 
-NeuroMorph (Eisenberger et al., CVPR 2021, methods-digest §4.2) uses one architecture, "ResnetECPos", for
+NeuroMorph (Eisenberger et al., CVPR 2021, docs/neuromorph.md §3) uses one architecture, "ResnetECPos", for
 both of its networks: a per-vertex linear lift, then a stack of EdgeConv layers (Wang et al., "Dynamic Graph
 CNN", 2019) whose message function is a pre-activation residual MLP block
 
@@ -9,7 +9,7 @@ CNN", 2019) whose message function is a pre-activation residual MLP block
 aggregated with a max over the mesh neighbours j of vertex i. Between layers the features are concatenated
 with a pooled copy of themselves and with the network input.
 
-Pooling ([BUG?] in methods-digest §4.2). The original takes the max over dim 1 of an ``(n, h)`` tensor, i.e.
+Pooling ([BUG?] in docs/neuromorph.md §8). The original takes the max over dim 1 of an ``(n, h)`` tensor, i.e.
 over the *channels* of each vertex, a left-over of an earlier batched ``(T, n, h)`` version. We default to
 the paper's intent, a true **global max-pool over the vertices** (``pool="global"``): every vertex then
 sees a descriptor of the whole shape. ``pool="channel"`` reproduces the original. Both give the layers the

@@ -1,4 +1,4 @@
-"""The two networks of NeuroMorph (Eisenberger et al., CVPR 2021; methods-digest §4.2), built on ResnetEC.
+"""The two networks of NeuroMorph (Eisenberger et al., CVPR 2021; docs/neuromorph.md §3), built on ResnetEC.
 
 * :class:`NeuroMorphFeatureNet`: per-vertex input ``[xyz, vertex normal]`` (6 channels), 128-D output,
   L2-normalized per vertex (the features of the softmax correspondence, :mod:`shapecorr.matching.softmax`).
@@ -7,7 +7,7 @@
   elements differ only in the vertex-constant channel t: the t-independent work runs once
   (:meth:`shapecorr.nn.edgeconv.ResnetEC.forward_separable`).
 
-Time steps (methods-digest §4.4): with T intermediate steps, ``t_i = i / (T + 1)`` for ``i = 1 .. T + 1``, so
+Time steps (docs/neuromorph.md §5): with T intermediate steps, ``t_i = i / (T + 1)`` for ``i = 1 .. T + 1``, so
 the last one is t = 1 (:func:`interpolation_times`).
 
 Both networks take the mesh edges explicitly (``shapecorr.geometry.mesh_graph.undirected_edges``) and hold

@@ -1,7 +1,7 @@
 """Smooth spectral filter bank: the Deep Shells feature extractor.
 
 A layer maps per-vertex input channels ``f_c`` to output channels ``g_j`` by filtering in the Laplace-Beltrami
-eigenbasis (Deep Shells, Eisenberger et al. NeurIPS 2020, §4; methods-digest §2.2):
+eigenbasis (Deep Shells, Eisenberger et al. NeurIPS 2020, §4; docs/deep_shells.md §3):
 
     g_j = Phi diag-sum_c h_{c,j}(lambda) Phi^T A f_c,        h_{c,j}(lambda) = sum_m a_{c,j,m} B_m(lambda) + b_{c,j}
 
@@ -11,7 +11,7 @@ smooth functions of the eigenvalue, so the layer is (approximately) invariant to
 it runs on: the same weights apply to any mesh. Without nonlinearity the layer is linear in the features.
 
 Eigenvalue convention. shapecorr's Laplacian uses the standard ``1/2 (cot a + cot b)`` weights; the original
-MATLAB preprocessing used ``cot a + cot b``, so its eigenvalues are twice ours (methods-digest §0.3), and the
+MATLAB preprocessing used ``cot a + cot b``, so its eigenvalues are twice ours (docs/deep_shells.md §2), and the
 published filter scale ``T = 5e4`` refers to those. In shapecorr's convention the same filters need
 ``max_frequency = T / 2 = 2.5e4`` (:data:`DEFAULT_MAX_FREQUENCY`). Eigenvalues also scale with 1/area: the
 default assumes the Deep Shells normalization to total area 0.44 (shapecorr's default (2/3)^2 = 0.444 is
@@ -36,7 +36,7 @@ from shapecorr.errors import ConfigError
 
 #: Deep Shells ``filter_scale`` (param.py ``Param``), in the original doubled-eigenvalue convention.
 ORIGINAL_FILTER_SCALE = 5e4
-#: Ratio of the original MATLAB eigenvalues to shapecorr's (full vs half cotangent weights, digest §0.3).
+#: Ratio of the original MATLAB eigenvalues to shapecorr's (full vs half cotangent weights, docs/deep_shells.md §2).
 ORIGINAL_EIGENVALUE_FACTOR = 2.0
 #: Cosine period parameter T in shapecorr's eigenvalue convention (= 5e4 / 2).
 DEFAULT_MAX_FREQUENCY = ORIGINAL_FILTER_SCALE / ORIGINAL_EIGENVALUE_FACTOR

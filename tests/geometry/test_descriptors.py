@@ -111,7 +111,7 @@ def test_mean_normalization_is_scale_invariant(basis, descriptor):
 
 def test_smooth_shells_hks_convention():
     """Smooth Shells: HKS(v, t) = sum_{i=2..200} phi_i(v)^2 exp(-t lambda_i), doubled eigenvalues, 100
-    log-spaced times in [0.002, 0.05] (methods-digest §1.3), on a shape of area 0.44."""
+    log-spaced times in [0.002, 0.05] (docs/deep_shells.md §2), on a shape of area 0.44."""
     v, f = bumpy_sphere(1)
     v = v * math.sqrt(0.44 / trimesh.Trimesh(v, f, process=False).area)
     evals, evecs, _ = eigenbasis(v, f, 200)

@@ -41,7 +41,7 @@ def naive_cotan(verts, faces):
 
 
 def matlab_stiffness(verts, faces):
-    """Oracle of the original MATLAB construction (methods-digest §0.3): edge lengths, Heron area, weight
+    """Oracle of the original MATLAB construction (docs/deep_shells.md §2): edge lengths, Heron area, weight
     (a^2 + b^2 - c^2) / (4 area) per corner, *full* cot a + cot b; returned as a PSD stiffness."""
     n = len(verts)
     W = np.zeros((n, n))
