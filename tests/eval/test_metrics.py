@@ -92,22 +92,6 @@ def test_geodesic_error_input_errors(sphere):
         metrics.geodesic_errors(ident, bad, ident, ident, 1.0)
 
 
-def test_ground_truth_indices():
-    faces = np.array([[0, 1, 2]])
-    gx, gy = metrics.ground_truth_indices(np.array([2, 0]), np.array([1, 1]), 3, 2)
-    assert gx.tolist() == [2, 0] and gy.tolist() == [1, 1]
-    gx, gy = metrics.ground_truth_indices(None, None, 3, 3, faces, faces)
-    assert gx.tolist() == [0, 1, 2] == gy.tolist()
-    with pytest.raises(CorrespondenceError, match="connectivity"):
-        metrics.ground_truth_indices(None, None, 3, 4)
-    with pytest.raises(CorrespondenceError, match="connectivity"):
-        metrics.ground_truth_indices(None, None, 3, 3, faces, faces[:, ::-1])
-    with pytest.raises(CorrespondenceError, match="missing for Y"):
-        metrics.ground_truth_indices(np.array([0]), None, 3, 3)
-    with pytest.raises(CorrespondenceError, match="3 vertices"):
-        metrics.ground_truth_indices(np.array([3]), np.array([0]), 3, 3)
-
-
 # ---------------------------------------------------------------------------------------------------- PCK
 def test_pck_hand_computed():
     t, frac = metrics.pck_curve([0.0, 0.1, 0.2, 0.3], thresholds=[0.0, 0.1, 0.15, 0.25])

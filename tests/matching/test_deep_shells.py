@@ -10,9 +10,9 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from shapecorr.data.shape import triangle_areas
 from shapecorr.errors import ConfigError, InvalidMeshError, NumericalError
 from shapecorr.geometry.laplace_beltrami import eigenbasis
+from shapecorr.geometry.mesh import triangle_areas
 from shapecorr.geometry.normals import vertex_normals
 from shapecorr.geometry.remeshing import remesh
 from shapecorr.geometry.shot_descriptor import shot
