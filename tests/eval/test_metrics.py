@@ -14,14 +14,12 @@ from shapecorr.eval import metrics
 
 
 @pytest.fixture(scope="module")
-def sphere():
+def sphere(unit_sphere):
     """Unit icosphere (642 vertices) with the exact great-circle distance matrix of its vertices."""
-    mesh = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    v, f = unit_sphere(3)
     dist = np.arccos(np.clip(v @ v.T, -1.0, 1.0))
     np.fill_diagonal(dist, 0.0)  # arccos(1 - eps) would leave ~1e-8 on the diagonal
-    return v, np.asarray(mesh.faces, dtype=np.int64), dist
+    return v, f, dist
 
 
 def _mirror_index(v: np.ndarray, axis: int) -> np.ndarray:

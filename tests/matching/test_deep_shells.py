@@ -38,13 +38,8 @@ N_EIGS = 60
 SMALL_REFINE = dict(refine_k_max=40, refine_levels=12)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    # The tests use tiny matrices: OpenMP threading only adds overhead (and stalls on a busy machine).
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+# Tiny tensors: one torch thread (OpenMP threading only adds overhead); fixture in tests/conftest.py.
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def _blob(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
