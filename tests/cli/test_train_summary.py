@@ -27,7 +27,7 @@ NM_BENCH = REPO / "benchmarks" / "neuromorph_faust_r.py"
 ACCUMULATE, TRAIN_PAIRS, VAL_EVERY = 2, 4, 2
 TINY = ["debug=tiny", f"trainer.limit_train_batches={TRAIN_PAIRS}", f"trainer.accumulate_grad_batches={ACCUMULATE}",
         f"trainer.val_check_interval={VAL_EVERY}", "trainer.limit_val_batches=1", "test=false",
-        "+trainer.num_sanity_val_steps=0"]
+        "trainer.num_sanity_val_steps=0"]
 
 
 @pytest.fixture(scope="module")

@@ -39,7 +39,7 @@ def test_train_cli_tiny(cache_dir, tmp_path):
     run_dir = tmp_path / "run"
     proc = _run(["debug=tiny", f"paths.cache_dir={cache_dir}", f"hydra.run.dir={run_dir}",
                  "trainer.limit_train_batches=2", "trainer.limit_val_batches=1", "trainer.limit_test_batches=2",
-                 "+trainer.num_sanity_val_steps=0"])
+                 "trainer.num_sanity_val_steps=0"])
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = [line for line in proc.stdout.strip().splitlines() if line.strip()]
     match = FINAL_LINE.match(lines[-1])

@@ -339,7 +339,7 @@ def test_train_cli_tiny_smoke_run(tmp_path):
     args = ["model=neuromorph", "debug=tiny", f"data.root={data}", "~data.synthetic",  # a folder, not generated
             "data.operators.n_eig=16", "data.prepare_workers=1", f"paths.cache_dir={tmp_path / 'cache'}",
             f"hydra.run.dir={run_dir}", "trainer.limit_train_batches=2", "trainer.limit_val_batches=1",
-            "trainer.limit_test_batches=2", "+trainer.num_sanity_val_steps=0", "trainer.enable_progress_bar=false",
+            "trainer.limit_test_batches=2", "trainer.num_sanity_val_steps=0", "trainer.enable_progress_bar=false",
             "model.augment.resolution=[300,500]", "model.augment.variants=2"]
     env = {**os.environ, "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1"}
     proc = subprocess.run([sys.executable, str(REPO / "train.py"), *args], cwd=REPO, capture_output=True, text=True,
