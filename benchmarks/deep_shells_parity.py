@@ -74,7 +74,7 @@ def geodesic_errors_percent(verts_y, faces_y, maps: dict, ref_x, ref_y) -> dict:
     Distances only from the ground-truth vertices that some map misses (heat method, potpourri3d through
     ``shapecorr.geometry.geodesics``).
     """
-    from shapecorr.data.shape import triangle_areas
+    from shapecorr.geometry.mesh import triangle_areas
     from shapecorr.geometry.geodesics import geodesic_distances
 
     need = np.unique(np.concatenate([ref_y[np.asarray(p)[ref_x] != ref_y] for p in maps.values()]))

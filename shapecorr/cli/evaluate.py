@@ -67,6 +67,7 @@ from shapecorr.eval import protocol, reports
 from shapecorr.eval.export import INTERP_DIR, map_paths
 from shapecorr.matching.baselines import PrecomputedMaps
 from shapecorr.matching.result import Matcher
+from shapecorr.viz.pck import write_pck_png
 from shapecorr.viz.render import render_correspondence
 
 RUN_FILE = "run.json"
@@ -310,7 +311,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     }
     reports.write_metrics_json(out_dir / "metrics.json", result)
     reports.write_per_pair_csv(out_dir / "per_pair.csv", records)
-    reports.write_pck_png(out_dir / "pck.png", result, label=fingerprint["matcher"].rsplit(".", 1)[-1])
+    write_pck_png(out_dir / "pck.png", result, label=fingerprint["matcher"].rsplit(".", 1)[-1])
     render_examples(out_dir, shapes, pairs, records, int(cfg.n_examples), view)
     summary = reports.summary(result, out_dir)
     print(summary)

@@ -57,6 +57,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from shapecorr.errors import CacheError, NumericalError
+from shapecorr.geometry.mesh import as_numpy
 
 #: Environment variable naming the cache root.
 CACHE_ENV_VAR = "SHAPECORR_CACHE"
@@ -140,13 +141,6 @@ def remove_stale_temp_files(directory: str | os.PathLike, max_age_s: float = STA
     return removed
 
 
-def to_numpy(array: Any) -> np.ndarray:
-    """``array`` as a numpy array; torch tensors (any device) are detached and copied to the CPU."""
-    if hasattr(array, "detach"):  # a torch tensor, without importing torch in this module
-        array = array.detach().cpu().numpy()
-    return np.asarray(array)
-
-
 @contextmanager
 def _open_archive(path: Path) -> Iterator[np.lib.npyio.NpzFile]:
     # Open the file ourselves: np.load(path) leaks its handle when the zip directory is unreadable.
@@ -174,7 +168,7 @@ def content_hash(verts: Any, faces: Any) -> str:
     """
     digest = hashlib.sha256()
     for tag, array, dtype in ((b"verts", verts, "<f8"), (b"faces", faces, "<i8")):
-        a = np.ascontiguousarray(to_numpy(array), dtype=dtype)
+        a = np.ascontiguousarray(as_numpy(array), dtype=dtype)
         digest.update(tag)
         digest.update(np.asarray(a.shape, dtype="<i8").tobytes())
         digest.update(a.tobytes())
@@ -244,7 +238,7 @@ def _prepare_arrays(key: CacheKey, arrays: Mapping[str, Any]) -> dict[str, np.nd
     for name, value in arrays.items():
         if not isinstance(name, str) or not _ARRAY_NAME.match(name) or name in _RESERVED_NAMES or name.startswith("__"):
             raise CacheError(f"invalid array name {name!r} in cache entry {key.name!r}")
-        a = to_numpy(value)
+        a = as_numpy(value)
         if a.dtype.kind not in "biuf":
             raise CacheError(
                 f"array {name!r} of cache entry {key.name!r} has dtype {a.dtype}; only numeric arrays are stored"

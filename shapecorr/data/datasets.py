@@ -6,7 +6,8 @@ Folder layout (the de-facto layout of FAUST_r / SCAPE_r and of ``data_prep/make_
       off/ or shapes/        meshes: <name>.off | .ply | .obj
       corres/<name>.vts      optional: one-based vertex indices of R reference points (same r = same point)
       corres/<name>.sym.vts  optional: the same for the left/right mirrored ground truth
-      splits/<split>.txt     optional: shape names (one per line) of a split, e.g. train.txt / test.txt
+      splits/<split>.txt     optional: shape names (one per line) of a split, e.g. train.txt / test.txt;
+                             without a splits/ folder every shape belongs to every split
 
 :class:`ShapeDataset` yields one :class:`ShapeSample` per shape: the normalized :class:`Shape`, its
 eigenbasis, the configured descriptors and ground truth. :class:`PairDataset` yields ordered pairs.
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import re
 from concurrent.futures import ProcessPoolExecutor
@@ -41,6 +43,12 @@ MESH_DIRS = ("off", "shapes")
 MESH_EXTENSIONS = (".off", ".ply", ".obj")
 #: Version of the cached, validated and normalized meshes (bump when reading/validation/normalization changes).
 MESH_CACHE_VERSION = 1
+#: Folder of the split files ``<split>.txt`` under a dataset root.
+SPLITS_DIR = "splits"
+
+log = logging.getLogger(__name__)
+#: Roots already announced as having no splits/ folder (the message is logged once per root and process).
+_ROOTS_WITHOUT_SPLITS: set[str] = set()
 
 
 @dataclass(frozen=True, eq=False)
@@ -160,19 +168,27 @@ def select_names(
     """Names of the shapes in a split.
 
     Precedence: explicit ``names`` > ``split_file`` > ``index_range`` ``[start, stop)`` into the sorted names
-    > ``ROOT/splits/<split>.txt`` > all shapes (``split=None``). A requested split without any of these is an
-    error, so a typo never silently trains on everything.
+    > ``ROOT/splits/<split>.txt`` > all shapes (``split=None``). A folder without a ``splits/`` directory has no
+    splits: every shape belongs to every split (logged once per folder). With a ``splits/`` directory, a requested
+    split without its file is an error, so a typo never silently trains on everything.
     """
     all_set = set(all_names)
     if names is not None:
         chosen, source = list(names), "the configured names"
+    elif split_file is None and split is not None and index_range is None and not (Path(root) / SPLITS_DIR).is_dir():
+        key = str(Path(root).resolve())
+        if key not in _ROOTS_WITHOUT_SPLITS:
+            _ROOTS_WITHOUT_SPLITS.add(key)
+            log.info("%s has no %s/ folder: every shape (%d) belongs to every split (train, val, test)",
+                     root, SPLITS_DIR, len(all_names))
+        return list(all_names)
     elif split_file is not None or (split is not None and index_range is None):
-        path = Path(split_file) if split_file is not None else Path(root) / "splits" / f"{split}.txt"
+        path = Path(split_file) if split_file is not None else Path(root) / SPLITS_DIR / f"{split}.txt"
         if not path.is_file():
             if split_file is None:
                 raise DatasetError(
                     f"no split file for split {split!r} (expected splits/{split}.txt, or give an index range in "
-                    "the data config)", root)
+                    "the data config; a folder without splits/ puts every shape in every split)", root)
             raise DatasetError("split file does not exist", path)
         chosen = [line.strip() for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
         source = str(path)
@@ -297,6 +313,7 @@ class ShapeDataset(Dataset):
         self.split = split
         files = find_mesh_files(self.root)
         self.names = select_names(list(files), self.root, split, names, index_range, split_file)
+        self._folder_names = set(files)
         self.paths = [files[n] for n in self.names]
         self.normalization = normalization
         self.operators = operators
@@ -328,6 +345,11 @@ class ShapeDataset(Dataset):
         try:
             return self._index[name]
         except KeyError:
+            if name in self._folder_names:
+                raise DatasetError(
+                    f"shape {name!r} is in the folder but not in split {self.split!r} ({len(self.names)} shapes): "
+                    "pairs must name shapes of the split they are taken from (choose it with pairs=<split>, or list "
+                    f"the shape in {SPLITS_DIR}/<split>.txt)", self.root) from None
             raise DatasetError(f"no shape named {name!r} in this split ({len(self.names)} shapes)", self.root) from None
 
     def load_shape(self, i: int) -> Shape:
@@ -406,7 +428,8 @@ class PairDataset(Dataset):
     include_self
         With the default pairs, include (i, i) (Deep Shells and NeuroMorph train on self-pairs too).
     pair_file
-        A pair list file (see :func:`read_pair_file`) instead of ``pairs``.
+        A pair list file (see :func:`read_pair_file`) instead of ``pairs``; a relative path that does not exist
+        from the working directory is looked up in the dataset folder (e.g. ``test_pairs.txt`` of FAUST_r).
     max_pairs
         Keep an evenly spaced subset of at most this many pairs (deterministic), e.g. for validation.
     """
@@ -421,6 +444,9 @@ class PairDataset(Dataset):
     ):
         self.shapes = shapes
         if pair_file is not None:
+            in_root = Path(shapes.root) / pair_file
+            if not Path(pair_file).is_absolute() and not Path(pair_file).exists() and in_root.is_file():
+                pair_file = in_root
             pairs = read_pair_file(pair_file)
         if pairs is None:
             n = len(shapes)

@@ -50,15 +50,15 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from shapecorr.data.cache import atomic_open, to_numpy
+from shapecorr.data.cache import atomic_open
 from shapecorr.data.shape import Normalization, Shape, make_shape
 from shapecorr.data.validation import (
     DEFAULT_DEGENERATE_TOL,
     DEFAULT_MAX_DEGENERATE_FRACTION,
-    check_mesh_arrays,
     validate_mesh,
 )
 from shapecorr.errors import ConfigError, CorrespondenceError, InvalidMeshError, MeshReadError
+from shapecorr.geometry.mesh import as_numpy, check_mesh_arrays
 
 #: Mesh formats :func:`read_mesh` understands.
 MESH_READ_EXTENSIONS = (".off", ".ply", ".obj")
@@ -380,7 +380,7 @@ def write_mesh(path: str | PathLike, verts: np.ndarray, faces: np.ndarray) -> No
     if extension not in MESH_WRITE_EXTENSIONS:
         supported = ", ".join(MESH_WRITE_EXTENSIONS)
         raise ConfigError(f"cannot write mesh format {extension or '(none)'!r}; supported: {supported}", path)
-    v, f = check_mesh_arrays(to_numpy(verts), to_numpy(faces), path)
+    v, f = check_mesh_arrays(as_numpy(verts), as_numpy(faces), path)
     if f.max() >= np.iinfo(np.int32).max:
         raise InvalidMeshError("too many vertices for 32-bit face indices", path)
     data = _off_bytes(v, f) if extension == ".off" else _ply_bytes(v, f)
@@ -405,7 +405,7 @@ def _read_text(path: Path) -> str:
 
 
 def _check_indices(idx: np.ndarray, path: Path, what: str) -> np.ndarray:
-    a = to_numpy(idx)
+    a = as_numpy(idx)
     if a.ndim != 1 or a.dtype.kind not in "iu":
         raise CorrespondenceError(f"{what} must be a 1-D integer array, got {a.dtype} with shape {a.shape}", path)
     if len(a) and a.min() < 0:

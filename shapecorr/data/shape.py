@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from shapecorr.errors import ConfigError, InvalidMeshError
+from shapecorr.geometry.mesh import triangle_areas
 
 #: Default total area after normalization: sqrt(area) = 2/3 (CONVENTIONS.md; Deep Shells used 0.44 ~ (2/3)^2).
 DEFAULT_TARGET_AREA = (2.0 / 3.0) ** 2
@@ -91,23 +92,6 @@ class Shape:
 
     def __repr__(self) -> str:
         return f"Shape(name={self.name!r}, n_verts={self.n_verts}, n_faces={self.n_faces})"
-
-
-def triangle_areas(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Areas of the triangles.
-
-    Parameters
-    ----------
-    verts : (n, 3) float
-    faces : (f, 3) int
-
-    Returns
-    -------
-    (f,) float64
-    """
-    v = np.asarray(verts, dtype=np.float64)
-    tri = v[np.asarray(faces)]
-    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
 
 
 def normalization_transform(

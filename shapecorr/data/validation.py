@@ -30,6 +30,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from shapecorr.errors import InvalidMeshError
+from shapecorr.geometry.mesh import check_mesh_arrays
+from shapecorr.geometry.mesh import format_indices as _listing
 
 #: A face is degenerate when area <= DEFAULT_DEGENERATE_TOL * mean face area. Project choice (no published
 #: value): 1e-12 relative area is far below any sliver a remesher produces on purpose and well above
@@ -41,77 +43,12 @@ DEFAULT_DEGENERATE_TOL = 1e-12
 #: whose Laplacian would be dominated by them.
 DEFAULT_MAX_DEGENERATE_FRACTION = 1e-3
 
-#: How many offending indices an error or warning message lists before "...".
-_MAX_LISTED = 5
-
-
 class MeshWarning(UserWarning):
     """A mesh has a property some methods cannot handle (non-manifold, several components, slivers)."""
 
 
 def _where(path: str | PathLike | None) -> str:
     return f"{path}: " if path is not None else ""
-
-
-def _listing(indices: np.ndarray) -> str:
-    shown = ", ".join(str(int(i)) for i in indices[:_MAX_LISTED])
-    return shown + (", ..." if len(indices) > _MAX_LISTED else "")
-
-
-def check_mesh_arrays(
-    verts: np.ndarray, faces: np.ndarray, path: str | PathLike | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Check the structure of a triangle mesh and return it as float64 / int64 arrays.
-
-    Parameters
-    ----------
-    verts : (n, 3) float
-        Vertex positions; must be finite.
-    faces : (f, 3) int
-        Zero-based triangle indices in ``[0, n)``.
-    path
-        File the mesh came from, named in error messages.
-
-    Returns
-    -------
-    verts : (n, 3) float64
-    faces : (f, 3) int64
-
-    Raises
-    ------
-    InvalidMeshError
-        Empty arrays, wrong shapes or dtypes, NaN/Inf coordinates, face indices out of range.
-    """
-    v = np.asarray(verts)
-    f = np.asarray(faces)
-    if v.ndim != 2 or v.shape[1] != 3:
-        raise InvalidMeshError(f"vertices must have shape (n, 3), got {v.shape}", path)
-    if f.ndim != 2 or f.shape[1] != 3:
-        raise InvalidMeshError(f"faces must have shape (f, 3) (triangles), got {f.shape}", path)
-    if v.shape[0] == 0:
-        raise InvalidMeshError("mesh has no vertices", path)
-    if f.shape[0] == 0:
-        raise InvalidMeshError("mesh has no faces", path)
-    if v.dtype.kind not in "fiu":
-        raise InvalidMeshError(f"vertices must be numeric, got dtype {v.dtype}", path)
-    if f.dtype.kind not in "iu":
-        raise InvalidMeshError(f"faces must be integers, got dtype {f.dtype}", path)
-    v = v.astype(np.float64, copy=False)
-    bad_rows = np.flatnonzero(~np.isfinite(v).all(axis=1))
-    if len(bad_rows):
-        raise InvalidMeshError(
-            f"{len(bad_rows)} vertices have NaN/Inf coordinates (vertex {_listing(bad_rows)}, zero-based)", path
-        )
-    n = v.shape[0]
-    bad_faces = np.flatnonzero(((f < 0) | (f >= n)).any(axis=1))
-    if len(bad_faces):
-        first = f[bad_faces[0]].tolist()
-        raise InvalidMeshError(
-            f"{len(bad_faces)} faces have a vertex index outside [0, {n}) (face {_listing(bad_faces)}, "
-            f"zero-based; first is {first})",
-            path,
-        )
-    return v, f.astype(np.int64, copy=False)
 
 
 def non_manifold_edges(faces: np.ndarray) -> np.ndarray:

@@ -51,8 +51,9 @@ import numpy as np
 import scipy.integrate
 from scipy.spatial import cKDTree
 
-from shapecorr.data.shape import triangle_areas
 from shapecorr.errors import CorrespondenceError, InvalidMeshError, NumericalError
+from shapecorr.geometry.mesh import as_numpy, triangle_areas
+from shapecorr.geometry.mesh import check_index as _check_index
 
 #: Largest PCK threshold, as a fraction of sqrt(area) (docs/evaluation.md §2: thresholds 0..0.25).
 PCK_MAX_THRESHOLD = 0.25
@@ -66,32 +67,11 @@ CONFORMAL_DISTORTION_CLAMP = 10.0
 DEGENERATE_AREA_RTOL = 1e-12
 
 
-def as_numpy(a, dtype=None) -> np.ndarray:
-    """numpy view of an array or a (possibly GPU, possibly grad-tracking) torch tensor."""
-    if hasattr(a, "detach"):
-        a = a.detach().cpu().numpy()
-    return np.asarray(a) if dtype is None else np.asarray(a, dtype=dtype)
-
-
 def _check_finite(values: np.ndarray, what: str) -> np.ndarray:
     if not np.all(np.isfinite(values)):
         bad = int((~np.isfinite(values)).sum())
         raise NumericalError(f"{what}: {bad} of {values.size} values are NaN or infinite")
     return values
-
-
-def _check_index(idx: np.ndarray, n: int, what: str) -> np.ndarray:
-    idx = as_numpy(idx)
-    if idx.ndim != 1:
-        raise CorrespondenceError(f"{what} must be a 1-D index array, got shape {idx.shape}")
-    if idx.size and not np.issubdtype(idx.dtype, np.integer):
-        raise CorrespondenceError(f"{what} must hold integer vertex indices, got dtype {idx.dtype}")
-    idx = idx.astype(np.int64, copy=False)
-    if idx.size and (idx.min() < 0 or idx.max() >= n):
-        raise CorrespondenceError(
-            f"{what} has indices in [{idx.min()}, {idx.max()}] but the shape has {n} vertices (valid: 0..{n - 1})"
-        )
-    return idx
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -148,49 +128,6 @@ def geodesic_errors(p2p, dist_y, ref_x, ref_y, sqrt_area_y: float) -> np.ndarray
         raise NumericalError(f"sqrt(area) of the target must be positive, got {sqrt_area_y}")
     errors = dist_y[p2p[ref_x], ref_y].astype(np.float64) / float(sqrt_area_y)
     return _check_finite(errors, "geodesic errors (is the target mesh disconnected?)")
-
-
-def ground_truth_indices(corres_x, corres_y, n_x: int, n_y: int, faces_x=None, faces_y=None):
-    """Reference-point indices ``(ref_x, ref_y)`` of a pair.
-
-    With ``.vts`` files on both shapes, entry r of each is the same point (FAUST_r/SCAPE_r convention).
-    Without ground truth on either shape, two shapes with the same connectivity correspond vertex by vertex
-    (docs/evaluation.md §1: the ground truth is the identity).
-
-    Parameters
-    ----------
-    corres_x, corres_y : (R,) int or None
-        Zero-based reference vertices of X and Y.
-    n_x, n_y : int
-        Vertex counts.
-    faces_x, faces_y : (f, 3) int, optional
-        Triangles, used to check for shared connectivity when there is no ground truth.
-
-    Returns
-    -------
-    ref_x, ref_y : (R,) int64
-    """
-    if corres_x is not None and corres_y is not None:
-        ref_x = _check_index(corres_x, n_x, "ground truth of X")
-        ref_y = _check_index(corres_y, n_y, "ground truth of Y")
-        if ref_x.shape != ref_y.shape:
-            raise CorrespondenceError(
-                f"ground truth lengths differ: {ref_x.shape[0]} reference points on X, {ref_y.shape[0]} on Y"
-            )
-        return ref_x, ref_y
-    if corres_x is None and corres_y is None:
-        same = n_x == n_y and (
-            faces_x is None or faces_y is None or np.array_equal(as_numpy(faces_x), as_numpy(faces_y))
-        )
-        if same:
-            ident = np.arange(n_x, dtype=np.int64)
-            return ident, ident.copy()
-        raise CorrespondenceError(
-            f"no ground truth (.vts) for either shape and they do not share connectivity ({n_x} vs {n_y} "
-            "vertices, or different faces): cannot evaluate this pair"
-        )
-    which = "X" if corres_x is None else "Y"
-    raise CorrespondenceError(f"ground truth (.vts) is missing for {which} but present for the other shape")
 
 
 def pck_curve(errors, thresholds=None) -> tuple[np.ndarray, np.ndarray]:

@@ -51,6 +51,7 @@ from tqdm.auto import tqdm
 
 from shapecorr.data.cache import atomic_open
 from shapecorr.data.datasets import pair_name
+from shapecorr.data.ground_truth import ground_truth_indices
 from shapecorr.errors import ConfigError, CorrespondenceError, InvalidMeshError
 from shapecorr.eval import metrics
 from shapecorr.eval.export import write_map_files, write_sequence
@@ -192,7 +193,7 @@ def score_map(p2p, x, y, dist_y: np.ndarray, clamp: float = metrics.CONFORMAL_DI
     as_np = lambda t: None if t is None else t.detach().cpu().numpy()  # noqa: E731
     faces_x, faces_y = as_np(x.shape.faces), as_np(y.shape.faces)
     verts_x, verts_y = as_np(x.shape.verts), as_np(y.shape.verts)
-    ref_x, ref_y = metrics.ground_truth_indices(as_np(x.corres), as_np(y.corres), n_x, n_y, faces_x, faces_y)
+    ref_x, ref_y = ground_truth_indices(as_np(x.corres), as_np(y.corres), n_x, n_y, faces_x, faces_y)
     sqrt_area_y = float(np.sqrt(metrics.surface_area(verts_y, faces_y)))
     errors = metrics.geodesic_errors(p2p, dist_y, ref_x, ref_y, sqrt_area_y)
     errors_sym = None

@@ -1,4 +1,5 @@
-"""Evaluation reports: ``metrics.json``, ``per_pair.csv`` and ``pck.png``.
+"""Evaluation reports: ``metrics.json`` and ``per_pair.csv`` (the figure ``pck.png`` is drawn by
+:func:`shapecorr.viz.pck.write_pck_png`: the evaluation layer does not import the drawing layer).
 
 Aggregation conventions (documented in ``metrics.json`` itself under ``"conventions"``):
 
@@ -34,13 +35,11 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-from matplotlib.figure import Figure
 
 from shapecorr.data.cache import atomic_open
 from shapecorr.errors import CorrespondenceError
 from shapecorr.eval import metrics
 from shapecorr.eval.protocol import PairRecord
-from shapecorr.viz.render import save_figure
 
 #: Column order of per_pair.csv: the four columns of the issue first, then everything else a record holds.
 PER_PAIR_COLUMNS = ["source", "target", "mean_error", "seconds"] + [
@@ -48,9 +47,6 @@ PER_PAIR_COLUMNS = ["source", "target", "mean_error", "seconds"] + [
 ]
 #: Per-pair deformation metrics averaged into ``mean_<name>`` when present (interpolating matchers).
 DEFORMATION_ATTRIBUTES = ("chamfer", "chamfer_one_sided", "volume_change", "deformation_conformal_distortion")
-#: Size of the PCK figure in inches and its resolution.
-PCK_FIGSIZE = (5.0, 4.0)
-PCK_DPI = 120
 _KIB_PER_MIB = 1024.0
 
 
@@ -222,47 +218,3 @@ def read_per_pair_csv(path: str | os.PathLike) -> list[PairRecord]:
                     values[key] = float(text)
             records.append(PairRecord.from_dict(values))
     return records
-
-
-def pck_figure(curves: Mapping[str, tuple[np.ndarray, np.ndarray, float]], title: str | None = None) -> Figure:
-    """A PCK figure (no pyplot: safe headless and in worker threads).
-
-    Parameters
-    ----------
-    curves : dict label -> (thresholds (t,), fractions (t,), mean error)
-        One line per entry; the legend shows the mean error and the AUC.
-    title : str, optional
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-    """
-    fig = Figure(figsize=PCK_FIGSIZE, dpi=PCK_DPI)
-    ax = fig.add_subplot(1, 1, 1)
-    for label, (t, frac, mean) in curves.items():
-        auc = metrics.pck_auc(t, frac)
-        ax.plot(t, frac, label=f"{label}: mean {mean:.4f}, AUC {auc:.3f}")
-    ax.set_xlabel("geodesic error / sqrt(area)")
-    ax.set_ylabel("fraction of correspondences")
-    ax.set_ylim(0.0, 1.0)
-    ax.set_xlim(float(min(c[0][0] for c in curves.values())), float(max(c[0][-1] for c in curves.values())))
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="lower right", fontsize="small")
-    if title:
-        ax.set_title(title)
-    fig.tight_layout()
-    return fig
-
-
-def write_pck_png(path: str | os.PathLike, metrics_dict: Mapping[str, Any], label: str = "map") -> Path:
-    """Write ``pck.png`` from an :func:`aggregate` result (plus the symmetric curve when present)."""
-    pck = metrics_dict["pck"]
-    curves = {label: (np.asarray(pck["thresholds"]), np.asarray(pck["fractions"]), metrics_dict["mean_geodesic_error"])}
-    if "pck_sym" in metrics_dict:
-        sym = metrics_dict["pck_sym"]
-        curves[f"{label} vs mirrored GT"] = (
-            np.asarray(sym["thresholds"]),
-            np.asarray(sym["fractions"]),
-            metrics_dict["mean_geodesic_error_sym"],
-        )
-    return save_figure(pck_figure(curves, title=f"PCK over {metrics_dict['n_pairs']} pairs"), path)

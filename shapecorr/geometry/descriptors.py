@@ -37,7 +37,7 @@ import math
 import numpy as np
 
 from shapecorr.errors import ConfigError, NumericalError
-from shapecorr.geometry.laplace_beltrami import _as_numpy
+from shapecorr.geometry.mesh import as_numpy as _as_numpy
 
 #: HKS default time range (Sun et al. 2009, §5): t_min = 4 ln 10 / lambda_max, t_max = 4 ln 10 / lambda_min
 #: (lambda_min the smallest nonzero eigenvalue used): exp(-t lambda) spans 1e-4 .. 1 over the used band.

@@ -34,7 +34,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from shapecorr.errors import ConfigError, InvalidMeshError, NumericalError
-from shapecorr.geometry.laplace_beltrami import _as_numpy, mesh_arrays
+from shapecorr.geometry.laplace_beltrami import mesh_arrays
+from shapecorr.geometry.mesh import as_numpy as _as_numpy
 
 #: Heat method time step t = HEAT_T_COEF * h^2, h the mean edge length (Crane et al. 2013, §3.2.4: m = 1).
 HEAT_T_COEF = 1.0

@@ -33,8 +33,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 from scipy.sparse.csgraph import connected_components
 
-from shapecorr.data.validation import check_mesh_arrays
 from shapecorr.errors import ConfigError, InvalidMeshError, NumericalError
+from shapecorr.geometry.mesh import as_numpy, check_mesh_arrays
 
 try:  # optional: limits BLAS threads during the ARPACK solves (see _single_threaded_blas)
     from threadpoolctl import threadpool_limits
@@ -104,13 +104,6 @@ SIGN_SKEW_RTOL = 1e-6
 EIGSH_SEED = 0
 
 
-def _as_numpy(x) -> np.ndarray:
-    """numpy view of an array or of a CPU torch tensor (detached)."""
-    if hasattr(x, "detach"):
-        x = x.detach().cpu()
-    return np.asarray(x)
-
-
 def mesh_arrays(verts, faces) -> tuple[np.ndarray, np.ndarray]:
     """Validated float64 vertices and int64 faces from numpy arrays or CPU torch tensors.
 
@@ -129,7 +122,7 @@ def mesh_arrays(verts, faces) -> tuple[np.ndarray, np.ndarray]:
     InvalidMeshError
         Wrong shapes or dtypes, NaN/Inf coordinates, face indices out of range.
     """
-    v, f = check_mesh_arrays(_as_numpy(verts), _as_numpy(faces))
+    v, f = check_mesh_arrays(as_numpy(verts), as_numpy(faces))
     return np.ascontiguousarray(v, dtype=np.float64), np.ascontiguousarray(f, dtype=np.int64)
 
 

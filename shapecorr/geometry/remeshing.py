@@ -22,9 +22,9 @@ import gpytoolbox
 import igl
 import numpy as np
 
-from shapecorr.data.shape import triangle_areas
 from shapecorr.errors import ConfigError, InvalidMeshError, NumericalError
 from shapecorr.geometry.laplace_beltrami import mesh_arrays
+from shapecorr.geometry.mesh import triangle_areas
 
 #: Iterations of the Botsch-Kobbelt remesher per run (gpytoolbox's default, 10, is enough to equalize
 #: edge lengths on scans; more mostly moves vertices tangentially).

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from shapecorr.errors import ConfigError, InvalidMeshError, NumericalError
-from shapecorr.geometry.laplace_beltrami import _as_numpy
+from shapecorr.geometry.mesh import as_numpy as _as_numpy
 
 
 def farthest_point_sampling(verts, n_samples: int, start: int = 0) -> np.ndarray:

@@ -15,8 +15,8 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from shapecorr.data.ground_truth import ground_truth_indices
 from shapecorr.errors import ConfigError, CorrespondenceError, NumericalError
-from shapecorr.eval.metrics import ground_truth_indices
 from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
 from shapecorr.matching.result import MatchResult
 

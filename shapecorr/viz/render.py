@@ -21,7 +21,7 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from shapecorr.data.cache import atomic_open
 from shapecorr.errors import CorrespondenceError, InvalidMeshError
-from shapecorr.eval.metrics import as_numpy as _np
+from shapecorr.geometry.mesh import as_numpy as _np
 
 #: Camera: elevation and azimuth in degrees and the axis pointing up (FAUST/SCAPE shapes stand along +y;
 #: azimuth 0 then shows a FAUST person from the front).

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from shapecorr.eval import metrics
-from shapecorr.eval.reports import pck_figure
+from shapecorr.viz.pck import pck_figure
 from shapecorr.viz.render import DEFAULT_VIEW, coordinate_colors, correspondence_figure, figure_to_rgb, transfer_colors
 
 #: 8-bit color scale of TensorBoard's mesh plugin.

@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from hydra import compose, initialize_config_dir
 from scipy.spatial import cKDTree
 
 from shapecorr.cli.evaluate import evaluate
@@ -24,7 +23,6 @@ from shapecorr.data.io import read_mesh, write_mesh, write_vts
 from shapecorr.eval import metrics
 from shapecorr.eval.export import read_times
 
-REPO = Path(__file__).resolve().parents[2]
 NAMES = ["p0", "p1", "p2"]
 N_PAIRS = len(NAMES) * (len(NAMES) - 1)
 INTERP_KEYS = ("mean_deformation_conformal_distortion", "mean_chamfer", "mean_chamfer_one_sided",
@@ -33,8 +31,8 @@ BLEND = ["model=linear_blend", "model.matcher.descriptor=hks"]
 
 
 @pytest.fixture(scope="module")
-def folder(tmp_path_factory):
-    """``(root, cache_dir)``."""
+def folder(tmp_path_factory, compose_config):
+    """``(root, cache_dir, compose_config)``."""
     root = tmp_path_factory.mktemp("interp_folder")
     for sub in ("off", "corres", "splits"):
         (root / sub).mkdir()
@@ -52,25 +50,24 @@ def folder(tmp_path_factory):
         write_vts(root / "corres" / f"{name}.vts", perm)
     (root / "splits" / "test.txt").write_text("\n".join(NAMES) + "\n")
     (root / "splits" / "train.txt").write_text("\n".join(NAMES) + "\n")
-    return root, tmp_path_factory.mktemp("interp_cache")
+    return root, tmp_path_factory.mktemp("interp_cache"), compose_config
 
 
 def _cfg(folder, out: Path, *overrides: str):
-    root, cache = folder
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        return compose(
-            "evaluate",
-            overrides=[
-                "data=folder",
-                f"data.root={root}",
-                f"paths.cache_dir={cache}",
-                f"output_dir={out}",
-                "progress=false",
-                "n_examples=0",
-                "data.operators.n_eig=30",
-                *overrides,
-            ],
-        )
+    root, cache, compose_config = folder
+    return compose_config(
+        "evaluate",
+        overrides=[
+            "data=folder",
+            f"data.root={root}",
+            f"paths.cache_dir={cache}",
+            f"output_dir={out}",
+            "progress=false",
+            "n_examples=0",
+            "data.operators.n_eig=30",
+            *overrides,
+        ],
+    )
 
 
 def _rows(path: Path) -> list[dict]:

@@ -13,19 +13,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from hydra import compose, initialize_config_dir
 
 from shapecorr.cli.evaluate import evaluate
 from shapecorr.data.io import load_shape, read_map, read_mesh, write_mesh
 from shapecorr.eval.export import read_times
 
-REPO = Path(__file__).resolve().parents[2]
 BLEND = ["model=linear_blend", "model@model.matcher=identity_gt"]
 
 
 @pytest.fixture(scope="module")
-def meshes(tmp_path_factory):
-    """``(A.off, B.ply, cache_dir)``."""
+def meshes(tmp_path_factory, compose_config):
+    """``(A.off, B.ply, cache_dir, compose_config)``."""
     folder = tmp_path_factory.mktemp("pose_meshes")
     mesh = trimesh.creation.icosphere(subdivisions=2)
     base, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
@@ -35,29 +33,28 @@ def meshes(tmp_path_factory):
     b = b * 2.0 + [-1.0, 4.0, 0.0]
     write_mesh(folder / "A.off", a, faces)
     write_mesh(folder / "B.ply", b, faces)
-    return folder / "A.off", folder / "B.ply", tmp_path_factory.mktemp("pose_cache")
+    return folder / "A.off", folder / "B.ply", tmp_path_factory.mktemp("pose_cache"), compose_config
 
 
 def _cfg(meshes, out: Path, *overrides: str):
-    source, target, cache = meshes
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        return compose(
-            "evaluate",
-            overrides=[
-                "task=pose_transfer",
-                f"source={source}",
-                f"target={target}",
-                f"output_dir={out}",
-                f"paths.cache_dir={cache}",
-                "data.operators.n_eig=20",  # a small eigenbasis: fast first run
-                *overrides,
-            ],
-        )
+    source, target, cache, compose_config = meshes
+    return compose_config(
+        "evaluate",
+        overrides=[
+            "task=pose_transfer",
+            f"source={source}",
+            f"target={target}",
+            f"output_dir={out}",
+            f"paths.cache_dir={cache}",
+            "data.operators.n_eig=20",  # a small eigenbasis: fast first run
+            *overrides,
+        ],
+    )
 
 
 def _expected_deformed(meshes) -> np.ndarray:
     """B's normalized vertices in A's input units (identity map, blend at t = 1)."""
-    source, target, _ = meshes
+    source, target = meshes[:2]
     a, b = load_shape(source), load_shape(target)
     return a.denormalize(b.verts)
 

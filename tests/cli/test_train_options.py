@@ -9,7 +9,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from pytorch_lightning.callbacks import ModelCheckpoint
 
@@ -22,23 +21,24 @@ from shapecorr.cli.train import (
 )
 from shapecorr.errors import ConfigError
 
-REPO = Path(__file__).resolve().parents[2]
+
+@pytest.fixture
+def _cfg(compose_config):
+    """``_cfg(tmp_path, *overrides)``: train.yaml with the cache and outputs under ``tmp_path``."""
+
+    def compose_train(tmp_path, *overrides):
+        return compose_config("train", [f"paths.cache_dir={tmp_path / 'cache'}",
+                                        f"paths.output_dir={tmp_path / 'out'}", *overrides])
+    return compose_train
 
 
-def _cfg(tmp_path, *overrides):
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        return compose("train", overrides=[f"paths.cache_dir={tmp_path / 'cache'}",
-                                           f"paths.output_dir={tmp_path / 'out'}", *overrides])
-
-
-def test_default_run_trains_on_the_small_synthetic_set(tmp_path):
+def test_default_run_trains_on_the_small_synthetic_set(tmp_path, _cfg, compose_config):
     cfg = _cfg(tmp_path)
     syn = cfg.data.synthetic
     assert syn.n_human_subjects * syn.n_human_poses == 12 and syn.n_quad_subjects == 0
     assert Path(cfg.data.root).name == "small_seed0"
     # evaluate.py's default keeps the 100-shape set in its own folder; debug=tiny gets the tiny preset again
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        ev = compose("evaluate", overrides=[f"paths.cache_dir={tmp_path}"])
+    ev = compose_config("evaluate", [f"paths.cache_dir={tmp_path}"])
     assert ev.data.synthetic.preset == "default" and "n_human_subjects" not in ev.data.synthetic
     assert Path(ev.data.root).name == "default_seed0"
     tiny = _cfg(tmp_path, "debug=tiny")
@@ -57,7 +57,7 @@ def test_default_run_trains_on_the_small_synthetic_set(tmp_path):
     assert exp.trainer.limit_train_batches == 1.0 and exp.trainer.limit_test_batches == 1.0
 
 
-def test_every_n_train_steps_replaces_every_n_epochs(tmp_path):
+def test_every_n_train_steps_replaces_every_n_epochs(tmp_path, _cfg):
     both = checkpoint_callback(_cfg(tmp_path, "checkpoint.every_n_train_steps=100"), tmp_path)
     assert both._every_n_train_steps == 100 and both._every_n_epochs == 0
     epochs = checkpoint_callback(_cfg(tmp_path), tmp_path)
@@ -71,7 +71,7 @@ def test_every_n_train_steps_replaces_every_n_epochs(tmp_path):
     assert trainer.checkpoint_callback._every_n_train_steps == 100
 
 
-def test_max_time_and_val_check_interval_are_trainer_keys(tmp_path):
+def test_max_time_and_val_check_interval_are_trainer_keys(tmp_path, _cfg):
     cfg = _cfg(tmp_path, "trainer.max_time=00:02:00:00", "trainer.val_check_interval=1000")
     trainer = instantiate(cfg.trainer, logger=False, enable_checkpointing=False)
     assert trainer.val_check_interval == 1000
@@ -87,13 +87,13 @@ def test_max_time_and_val_check_interval_are_trainer_keys(tmp_path):
     ("trainer.val_check_interval=-2", "invalid trainer options"),
     ("trainer.devices=0", "invalid trainer options"),
 ])
-def test_lightning_misconfiguration_is_a_config_error(tmp_path, override, message):
+def test_lightning_misconfiguration_is_a_config_error(tmp_path, override, message, _cfg):
     cfg = _cfg(tmp_path, override)
     with pytest.raises(ConfigError, match=message):
         _instantiate(cfg.trainer, "trainer", callbacks=build_callbacks(cfg, tmp_path), logger=False)
 
 
-def test_cli_prints_the_error_without_traceback(tmp_path, capsys):
+def test_cli_prints_the_error_without_traceback(tmp_path, capsys, _cfg):
     cfg = _cfg(tmp_path, "trainer.max_time=2h", "~logger")
     with pytest.raises(SystemExit) as exit_info:
         train(cfg)
@@ -104,7 +104,7 @@ def test_cli_prints_the_error_without_traceback(tmp_path, capsys):
     assert not (tmp_path / "cache" / "synthetic").exists()  # failed before generating any data
 
 
-def test_a_model_without_parameters_is_refused_before_any_data_work(tmp_path, capsys):
+def test_a_model_without_parameters_is_refused_before_any_data_work(tmp_path, capsys, _cfg):
     with pytest.raises(SystemExit) as exit_info:
         train(_cfg(tmp_path, "model.backbone=identity", "~logger"))
     assert exit_info.value.code == EXIT_INVALID_INPUT
@@ -112,7 +112,7 @@ def test_a_model_without_parameters_is_refused_before_any_data_work(tmp_path, ca
     assert not (tmp_path / "cache" / "synthetic").exists()
 
 
-def test_logger_none_disables_logging_but_keeps_checkpoints(tmp_path):
+def test_logger_none_disables_logging_but_keeps_checkpoints(tmp_path, _cfg):
     for option in ("logger=none", "~logger"):
         cfg = _cfg(tmp_path, option)
         assert not cfg.get("logger")

@@ -16,7 +16,6 @@ import sys
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from shapecorr.cli.common import EXIT_INVALID_INPUT
@@ -28,7 +27,7 @@ NM_BENCH = REPO / "benchmarks" / "neuromorph_faust_r.py"
 ACCUMULATE, TRAIN_PAIRS, VAL_EVERY = 2, 4, 2
 TINY = ["debug=tiny", f"trainer.limit_train_batches={TRAIN_PAIRS}", f"trainer.accumulate_grad_batches={ACCUMULATE}",
         f"trainer.val_check_interval={VAL_EVERY}", "trainer.limit_val_batches=1", "test=false",
-        "+trainer.num_sanity_val_steps=0"]
+        "trainer.num_sanity_val_steps=0"]
 
 
 @pytest.fixture(scope="module")
@@ -117,12 +116,11 @@ def test_summarize_without_events_is_a_clear_error(bench, tmp_path):
         bench.main(["--summarize", str(tmp_path), "--out", str(tmp_path / "s.json")])
 
 
-def test_misconfiguration_while_fitting_is_a_config_error(cache_dir, tmp_path, capsys):
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        cfg = compose("train", overrides=[*TINY, f"paths.cache_dir={cache_dir}", f"paths.output_dir={tmp_path}",
-                                          "~logger", "trainer.enable_progress_bar=false",
-                                          ("+callbacks.best={_target_: pytorch_lightning.callbacks.ModelCheckpoint,"
-                                           "monitor: val/not_logged}")])
+def test_misconfiguration_while_fitting_is_a_config_error(cache_dir, tmp_path, capsys, compose_config):
+    cfg = compose_config("train", [*TINY, f"paths.cache_dir={cache_dir}", f"paths.output_dir={tmp_path}",
+                                   "~logger", "trainer.enable_progress_bar=false",
+                                   ("+callbacks.best={_target_: pytorch_lightning.callbacks.ModelCheckpoint,"
+                                    "monitor: val/not_logged}")])
     with pytest.raises(SystemExit) as exit_info:
         train(cfg)
     assert exit_info.value.code == EXIT_INVALID_INPUT
@@ -130,15 +128,14 @@ def test_misconfiguration_while_fitting_is_a_config_error(cache_dir, tmp_path, c
     assert "error: invalid trainer or callback options" in err and "val/not_logged" in err
 
 
-def test_launch_commands_compose_without_plus_overrides(bench, tmp_path):
+def test_launch_commands_compose_without_plus_overrides(bench, tmp_path, compose_config):
     from shapecorr.cli.train import checkpoint_callback
 
     cmds = bench.launch_commands(tmp_path / "run", "/data/FAUST_r", with_published=True)
     assert set(cmds) == {"train", "eval", "ablation", "published"}
     train_args = [a for a in cmds["train"][2:] if not a.startswith("hydra.")]
     assert not any(a.startswith("+") for a in train_args)
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        cfg = compose("train", overrides=[*train_args, f"paths.output_dir={tmp_path}"])
+    cfg = compose_config("train", [*train_args, f"paths.output_dir={tmp_path}"])
     assert cfg.trainer.max_time == "00:02:00:00" and cfg.trainer.val_check_interval == 1000
     assert cfg.trainer.accumulate_grad_batches == 4 and cfg.model.val_refine_levels is None
     assert cfg.data.root == "/data/FAUST_r" and cfg.model.num_samples == 2000
@@ -147,7 +144,7 @@ def test_launch_commands_compose_without_plus_overrides(bench, tmp_path):
     assert "model=deep_shells_ablation" in cmds["ablation"] and "data=faust_r" in cmds["ablation"]
 
 
-def test_neuromorph_summary_and_launch_commands(tiny_run, nm_bench, tmp_path, capsys):
+def test_neuromorph_summary_and_launch_commands(tiny_run, nm_bench, tmp_path, capsys, compose_config):
     interp = tmp_path / "interp.json"
     mean = {"cd_mid_neuromorph": 0.25, "cd_mid_blend_soft": 1.5, "cd_mid_blend_hard": 3.0, "chamfer_end": 0.02,
             "chamfer_end_one_sided": 0.01, "full_cd_mid_neuromorph": 0.3, "full_cd_mid_blend_hard": 3.2,
@@ -167,20 +164,18 @@ def test_neuromorph_summary_and_launch_commands(tiny_run, nm_bench, tmp_path, ca
     # the CPU-budget overrides compose against the published experiment
     cmds = nm_bench.launch_commands(tmp_path / "run", "/data/FAUST_r")
     train_args = [a for a in cmds["train"][2:] if not a.startswith("hydra.")]
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        cfg = compose("train", overrides=[*train_args, f"paths.output_dir={tmp_path}"])
+    cfg = compose_config("train", [*train_args, f"paths.output_dir={tmp_path}"])
     assert cfg.trainer.accumulate_grad_batches == 4 and cfg.trainer.limit_train_batches == 640
     assert cfg.model.augment.variants == 4 and cfg.model.query_resolution == 2000
     assert [list(m) for m in cfg.callbacks.neuromorph_T.milestones] == [[0, 0], [6, 1]]
 
 
-def test_neuromorph_geodesic_map_variant_composes(nm_bench, tmp_path):
+def test_neuromorph_geodesic_map_variant_composes(nm_bench, tmp_path, compose_config):
     overrides, out = nm_bench.VARIANTS["geodesic-map"]
     assert out.name == "neuromorph_faust_r_geodesic_map.json"
     cmds = nm_bench.launch_commands(tmp_path / "run", "/data/FAUST_r", overrides)
     train_args = [a for a in cmds["train"][2:] if not a.startswith("hydra.")]
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        cfg = compose("train", overrides=[*train_args, f"paths.output_dir={tmp_path}"])
+    cfg = compose_config("train", [*train_args, f"paths.output_dir={tmp_path}"])
     assert cfg.model.map_gradient == "geodesic" and cfg.model.lr == pytest.approx(1e-3)
     assert cfg.trainer.max_time == "00:01:55:00" and cfg.trainer.accumulate_grad_batches == 4
     assert [list(m) for m in cfg.callbacks.neuromorph_lambda_geo.milestones] == [[0, 50.0], [8, 0.0]]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 import torch
@@ -111,6 +113,57 @@ def test_missing_split_and_bad_range(folder, tmp_path):
         ShapeDataset(folder, split="val", cache_dir=tmp_path)
     with pytest.raises(DatasetError, match="outside"):
         ShapeDataset(folder, index_range=[2, 9], cache_dir=tmp_path)
+
+
+def _bare_copy(folder, root):
+    """The folder without its splits/ directory (off/ + corres/ only)."""
+    import shutil
+
+    shutil.copytree(folder, root, ignore=shutil.ignore_patterns("splits"))
+    assert not (root / "splits").exists()
+    return root
+
+
+def test_without_splits_folder_every_shape_is_in_every_split(folder, tmp_path, caplog):
+    root = _bare_copy(folder, tmp_path / "bare")
+    everything = [f"shape_{i:03d}" for i in range(N_SHAPES)]
+    with caplog.at_level(logging.INFO, logger="shapecorr.data.datasets"):
+        dm = ShapePairDataModule(root, splits={"train": {"split": "train"}, "val": {"split": "test"},
+                                               "test": {"split": "test"}}, cache_dir=tmp_path)
+        for split in ("train", "val", "test"):
+            assert dm.shapes(split).names == everything
+        assert ShapeDataset(root, split="anything", cache_dir=tmp_path).names == everything
+    announced = [r for r in caplog.records if "no splits/ folder" in r.getMessage()]
+    assert len(announced) == 1 and "every shape (4) belongs to every split" in announced[0].getMessage()
+    # explicit selectors keep their meaning
+    assert ShapeDataset(root, index_range=[1, 3], cache_dir=tmp_path).names == ["shape_001", "shape_002"]
+    with pytest.raises(DatasetError, match="split file does not exist"):
+        ShapeDataset(root, split_file=root / "splits" / "test.txt", cache_dir=tmp_path)
+
+
+def test_with_a_splits_folder_a_missing_split_file_is_still_an_error(folder, tmp_path):
+    root = _bare_copy(folder, tmp_path / "typo")
+    (root / "splits").mkdir()
+    (root / "splits" / "train.txt").write_text("shape_000\n")
+    with pytest.raises(DatasetError, match="no split file for split 'test'"):
+        ShapeDataset(root, split="test", cache_dir=tmp_path)
+
+
+def test_pair_file_names_any_pair_of_a_bare_folder(folder, tmp_path):
+    root = _bare_copy(folder, tmp_path / "bare_pairs")
+    (root / "my_pairs.txt").write_text("shape_003 shape_000\nshape_001\tshape_002\n")
+    test = ShapeDataset(root, split="test", cache_dir=tmp_path)
+    # a relative path that is not in the working directory is read from the dataset folder
+    pairs = PairDataset(test, pair_file="my_pairs.txt")
+    assert [pairs.names(k) for k in range(len(pairs))] == [("shape_003", "shape_000"), ("shape_001", "shape_002")]
+
+
+def test_pair_outside_the_split_names_the_split(folder, tmp_path):
+    train = ShapeDataset(folder, split="train", cache_dir=tmp_path)  # shape_003 is a test shape
+    with pytest.raises(DatasetError, match="'shape_003' is in the folder but not in split 'train'"):
+        PairDataset(train, pairs=[("shape_000", "shape_003")])
+    with pytest.raises(DatasetError, match="no shape named 'shape_999'"):
+        PairDataset(train, pairs=[("shape_000", "shape_999")])
 
 
 def test_vts_length_mismatch(folder, tmp_path):

@@ -302,10 +302,21 @@ def test_read_correspondence_dispatches_by_suffix(tmp_path):
 
 
 def test_check_vts_lengths_on_files_written_by_write_vts(tmp_path):
+    from shapecorr.errors import CorrespondenceError
+
     rng = np.random.default_rng(SEED)
-    for name in ("s0", "s1", "s2"):
-        write_vts(tmp_path / f"{name}.vts", rng.integers(0, 100, size=40))
-    check_vts_lengths({name: read_vts(tmp_path / f"{name}.vts") for name in ("s0", "s1", "s2")}, tmp_path)
+    written = {name: rng.integers(0, 100, size=40) for name in ("s0", "s1", "s2")}
+    for name, idx in written.items():
+        write_vts(tmp_path / f"{name}.vts", idx)
+    read = {name: read_vts(tmp_path / f"{name}.vts") for name in written}
+    for name, idx in written.items():
+        np.testing.assert_array_equal(read[name], idx)  # zero-based in, zero-based out (one-based on disk)
+    assert check_vts_lengths(read, tmp_path) is None  # equal lengths pass
+    write_vts(tmp_path / "s3.vts", rng.integers(0, 100, size=39))
+    read["s3"] = read_vts(tmp_path / "s3.vts")
+    with pytest.raises(CorrespondenceError, match="has 39 reference points but s0.vts has 40") as err:
+        check_vts_lengths(read, tmp_path)
+    assert str(err.value).startswith(str(tmp_path / "s3.vts"))  # the message names the odd file first
 
 
 def test_write_map_rejects_non_integer_or_negative(tmp_path):

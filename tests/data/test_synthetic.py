@@ -19,7 +19,6 @@ import pytest
 import trimesh
 
 from shapecorr.data.io import read_mesh, read_vts
-from shapecorr.data.shape import triangle_areas
 from shapecorr.data.synthetic import (
     class_templates,
     ensure_synthetic_dataset,
@@ -37,6 +36,7 @@ from shapecorr.data.synthetic.meshing import edge_length_for_count, topology_rep
 from shapecorr.data.synthetic.skeleton import HUMAN, QUADRUPED
 from shapecorr.errors import ConfigError, DatasetError
 from shapecorr.geometry.geodesics import geodesic_distances
+from shapecorr.geometry.mesh import triangle_areas
 from shapecorr.geometry.sampling import farthest_point_sampling
 
 REPO = Path(__file__).resolve().parents[2]

@@ -192,11 +192,6 @@ def test_check_mesh_arrays_returns_float64_int64():
     assert v.dtype == np.float64 and f.dtype == np.int64
 
 
-def _sphere(subdivisions: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    mesh = trimesh.creation.icosphere(subdivisions)
-    return np.asarray(mesh.vertices), np.asarray(mesh.faces, dtype=np.int64)
-
-
 def _with_slivers(verts, faces, count):
     """Flatten `count` faces with pairwise disjoint vertices: corner c moves to the midpoint of edge (a, b),
     so exactly those faces get zero area and the connectivity stays manifold."""
@@ -213,18 +208,18 @@ def _with_slivers(verts, faces, count):
     return verts, faces
 
 
-def test_clean_meshes_emit_no_warning():
+def test_clean_meshes_emit_no_warning(unit_sphere):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert validate_mesh(*_sphere()) == []
+        assert validate_mesh(*unit_sphere()) == []
         torus = trimesh.creation.torus(major_radius=1.0, minor_radius=0.3, major_sections=24, minor_sections=12)
         assert validate_mesh(torus.vertices, torus.faces) == []
         box = trimesh.creation.box()
         assert validate_mesh(box.vertices, box.faces) == []
 
 
-def test_few_degenerate_faces_warn_many_raise():
-    verts, faces = _sphere(3)  # 1280 faces: the default fraction 1e-3 allows one sliver
+def test_few_degenerate_faces_warn_many_raise(unit_sphere):
+    verts, faces = unit_sphere(3)  # 1280 faces: the default fraction 1e-3 allows one sliver
     v1, f1 = _with_slivers(verts, faces, 1)
     with pytest.warns(MeshWarning, match="1 of 1280 faces are degenerate"):
         messages = validate_mesh(v1, f1, path="sliver.off")
@@ -238,8 +233,8 @@ def test_few_degenerate_faces_warn_many_raise():
         validate_mesh(v1, f1, max_degenerate_fraction=0.0)
 
 
-def test_degenerate_tolerance_is_relative_to_mean_area():
-    verts, faces = _sphere(2)
+def test_degenerate_tolerance_is_relative_to_mean_area(unit_sphere):
+    verts, faces = unit_sphere(2)
     # The same mesh at any scale: same verdict (no degenerate face at 1e-12 relative).
     for scale in (1e-6, 1.0, 1e6):
         with warnings.catch_warnings():
@@ -251,8 +246,8 @@ def test_degenerate_tolerance_is_relative_to_mean_area():
         validate_mesh(verts, faces, degenerate_tol=1.5 * areas.min() / areas.mean())
 
 
-def test_unreferenced_vertices_allowed_with_warning():
-    verts, faces = _sphere(1)
+def test_unreferenced_vertices_allowed_with_warning(unit_sphere):
+    verts, faces = unit_sphere(1)
     verts = np.vstack([verts, [[5.0, 5.0, 5.0]]])
     with pytest.raises(InvalidMeshError, match="not used by any face"):
         validate_mesh(verts, faces)
@@ -298,9 +293,9 @@ def test_non_manifold_vertex_warns_and_loads(tmp_path):
     assert len(v) == 7 and len(f) == 8
 
 
-def test_multiple_components_warn_and_load(tmp_path):
-    a, fa = _sphere(1)
-    b, fb = _sphere(0)
+def test_multiple_components_warn_and_load(tmp_path, unit_sphere):
+    a, fa = unit_sphere(1)
+    b, fb = unit_sphere(0)
     verts = np.vstack([a, b + 3.0])
     faces = np.vstack([fa, fb + len(a)])
     path = _write_off(tmp_path / "two.off", verts, faces)
@@ -309,11 +304,11 @@ def test_multiple_components_warn_and_load(tmp_path):
     assert len(v) == len(a) + len(b)
 
 
-def test_non_manifold_edges_matches_naive_count():
+def test_non_manifold_edges_matches_naive_count(unit_sphere):
     rng = np.random.default_rng(0)
     faces = np.array([rng.choice(12, size=3, replace=False) for _ in range(60)])
     counts = Counter(tuple(sorted(e)) for f in faces.tolist() for e in ((f[0], f[1]), (f[1], f[2]), (f[2], f[0])))
     expected = sorted(e for e, c in counts.items() if c > 2)
     assert expected, "the random soup should contain non-manifold edges"
     assert non_manifold_edges(faces).tolist() == [list(e) for e in expected]
-    assert non_manifold_edges(_sphere(1)[1]).shape == (0, 2)
+    assert non_manifold_edges(unit_sphere(1)[1]).shape == (0, 2)

@@ -14,14 +14,12 @@ from shapecorr.eval import metrics
 
 
 @pytest.fixture(scope="module")
-def sphere():
+def sphere(unit_sphere):
     """Unit icosphere (642 vertices) with the exact great-circle distance matrix of its vertices."""
-    mesh = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    v, f = unit_sphere(3)
     dist = np.arccos(np.clip(v @ v.T, -1.0, 1.0))
     np.fill_diagonal(dist, 0.0)  # arccos(1 - eps) would leave ~1e-8 on the diagonal
-    return v, np.asarray(mesh.faces, dtype=np.int64), dist
+    return v, f, dist
 
 
 def _mirror_index(v: np.ndarray, axis: int) -> np.ndarray:
@@ -90,22 +88,6 @@ def test_geodesic_error_input_errors(sphere):
     bad[0, 0] = np.inf
     with pytest.raises(NumericalError, match="NaN or infinite"):
         metrics.geodesic_errors(ident, bad, ident, ident, 1.0)
-
-
-def test_ground_truth_indices():
-    faces = np.array([[0, 1, 2]])
-    gx, gy = metrics.ground_truth_indices(np.array([2, 0]), np.array([1, 1]), 3, 2)
-    assert gx.tolist() == [2, 0] and gy.tolist() == [1, 1]
-    gx, gy = metrics.ground_truth_indices(None, None, 3, 3, faces, faces)
-    assert gx.tolist() == [0, 1, 2] == gy.tolist()
-    with pytest.raises(CorrespondenceError, match="connectivity"):
-        metrics.ground_truth_indices(None, None, 3, 4)
-    with pytest.raises(CorrespondenceError, match="connectivity"):
-        metrics.ground_truth_indices(None, None, 3, 3, faces, faces[:, ::-1])
-    with pytest.raises(CorrespondenceError, match="missing for Y"):
-        metrics.ground_truth_indices(np.array([0]), None, 3, 3)
-    with pytest.raises(CorrespondenceError, match="3 vertices"):
-        metrics.ground_truth_indices(np.array([3]), np.array([0]), 3, 3)
 
 
 # ---------------------------------------------------------------------------------------------------- PCK

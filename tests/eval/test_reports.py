@@ -11,6 +11,7 @@ from PIL import Image
 from shapecorr.errors import CorrespondenceError
 from shapecorr.eval import reports
 from shapecorr.eval.protocol import PairRecord
+from shapecorr.viz import pck
 
 
 def _record(source, target, mean, sym=None, seconds=1.0, chamfer=None):
@@ -62,10 +63,10 @@ def test_metrics_json_and_pck_png(tmp_path):
     out = reports.aggregate([_record("a", "b", 0.15, sym=0.2)], errors, [np.linspace(0, 0.4, 50)])
     js = reports.write_metrics_json(tmp_path / "metrics.json", out)
     assert json.loads(js.read_text())["mean_geodesic_error"] == pytest.approx(0.15)
-    png = reports.write_pck_png(tmp_path / "pck.png", out, label="test")
+    png = pck.write_pck_png(tmp_path / "pck.png", out, label="test")
     with Image.open(png) as img:
         assert img.format == "PNG" and img.size[0] > 200
-    fig = reports.pck_figure({"m": (np.asarray(out["pck"]["thresholds"]), np.asarray(out["pck"]["fractions"]), 0.15)})
+    fig = pck.pck_figure({"m": (np.asarray(out["pck"]["thresholds"]), np.asarray(out["pck"]["fractions"]), 0.15)})
     labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert labels == [f"m: mean 0.1500, AUC {out['pck_auc']:.3f}"]  # the mean is in the legend
 

@@ -23,16 +23,6 @@ from shapecorr.geometry.laplace_beltrami import ORIGINAL_EIGENVALUE_FACTOR, eige
 K = 60
 
 
-def bumpy_sphere(seed: int = 0):
-    s = trimesh.creation.icosphere(3)
-    v = np.asarray(s.vertices)
-    rng = np.random.default_rng(seed)
-    centers = rng.normal(size=(5, 3))
-    centers /= np.linalg.norm(centers, axis=1, keepdims=True)
-    bump = np.exp(-4.0 * ((v[:, None, :] - centers[None]) ** 2).sum(-1)) @ rng.uniform(0.5, 1.0, 5)
-    return v * (1.0 + 0.2 * bump[:, None]), np.asarray(s.faces, dtype=np.int64)
-
-
 def random_rotation(seed: int) -> np.ndarray:
     q, r = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
     q = q * np.sign(np.diag(r))
@@ -40,8 +30,8 @@ def random_rotation(seed: int) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def basis():
-    v, f = bumpy_sphere()
+def basis(smooth_bumpy_sphere):
+    v, f = smooth_bumpy_sphere(3, 0, 0.2, n_bumps=5)
     return v, f, eigenbasis(v, f, K)
 
 
@@ -109,10 +99,10 @@ def test_mean_normalization_is_scale_invariant(basis, descriptor):
     np.testing.assert_allclose(descriptor(evals_s, evecs_s), descriptor(evals, evecs) / 2.7**2, rtol=1e-6)
 
 
-def test_smooth_shells_hks_convention():
+def test_smooth_shells_hks_convention(smooth_bumpy_sphere):
     """Smooth Shells: HKS(v, t) = sum_{i=2..200} phi_i(v)^2 exp(-t lambda_i), doubled eigenvalues, 100
     log-spaced times in [0.002, 0.05] (docs/deep_shells.md §2), on a shape of area 0.44."""
-    v, f = bumpy_sphere(1)
+    v, f = smooth_bumpy_sphere(3, 1, 0.2, n_bumps=5)
     v = v * math.sqrt(0.44 / trimesh.Trimesh(v, f, process=False).area)
     evals, evecs, _ = eigenbasis(v, f, 200)
     doubled = ORIGINAL_EIGENVALUE_FACTOR * evals

@@ -10,27 +10,10 @@ import numpy as np
 import pytest
 import scipy.linalg
 import scipy.sparse as sp
-import trimesh
 
 from shapecorr.errors import ConfigError
 from shapecorr.geometry import laplace_beltrami as lap
 from shapecorr.geometry.laplace_beltrami import ORIGINAL_EIGENVALUE_FACTOR, eigenbasis, laplacian
-
-
-def unit_sphere(subdivisions: int):
-    s = trimesh.creation.icosphere(subdivisions)
-    v = np.asarray(s.vertices)
-    return v / np.linalg.norm(v, axis=1, keepdims=True), np.asarray(s.faces, dtype=np.int64)
-
-
-def bumpy_sphere(subdivisions: int, seed: int = 0, amplitude: float = 0.15):
-    v, f = unit_sphere(subdivisions)
-    rng = np.random.default_rng(seed)
-    # Smooth, asymmetric bumps: every eigenvalue becomes simple.
-    centers = rng.normal(size=(6, 3))
-    centers /= np.linalg.norm(centers, axis=1, keepdims=True)
-    bump = np.exp(-4.0 * ((v[:, None, :] - centers[None]) ** 2).sum(-1)) @ rng.uniform(0.5, 1.0, 6)
-    return v * (1.0 + amplitude * bump[:, None]), f
 
 
 def check_eigenpairs(v, f, evals, evecs, mass, method="cotan", atol=1e-8):
@@ -46,15 +29,15 @@ def check_eigenpairs(v, f, evals, evecs, mass, method="cotan", atol=1e-8):
 
 
 @pytest.mark.parametrize("subdivisions", [3, 4])  # 642 vertices: dense path; 2562: sparse shift-invert
-def test_orthonormal_residuals(subdivisions):
-    v, f = bumpy_sphere(subdivisions)
+def test_orthonormal_residuals(subdivisions, smooth_bumpy_sphere):
+    v, f = smooth_bumpy_sphere(subdivisions)
     evals, evecs, mass = eigenbasis(v, f, 40)
     check_eigenpairs(v, f, evals, evecs, mass)
     assert evals[0] == 0.0 and evals[1] > 0.1
     np.testing.assert_allclose(evecs[:, 0], 1.0 / np.sqrt(mass.sum()), rtol=1e-12)
 
 
-def test_unit_sphere_spectrum_and_multiplicities():
+def test_unit_sphere_spectrum_and_multiplicities(unit_sphere):
     v, f = unit_sphere(4)
     evals, evecs, mass = eigenbasis(v, f, 25)
     check_eigenpairs(v, f, evals, evecs, mass)
@@ -67,8 +50,8 @@ def test_unit_sphere_spectrum_and_multiplicities():
     np.testing.assert_allclose(evals[1:], exact[nearest[1:]], rtol=1e-2)
 
 
-def test_deterministic():
-    v, f = bumpy_sphere(4, seed=1)
+def test_deterministic(smooth_bumpy_sphere):
+    v, f = smooth_bumpy_sphere(4, seed=1)
     a = eigenbasis(v, f, 30)
     b = eigenbasis(v, f, 30)
     for x, y in zip(a, b):
@@ -76,9 +59,9 @@ def test_deterministic():
 
 
 @pytest.mark.parametrize("subdivisions", [3, 4])
-def test_vertex_permutation_permutes_eigenfunctions(subdivisions):
+def test_vertex_permutation_permutes_eigenfunctions(subdivisions, smooth_bumpy_sphere):
     """The sign rule is intrinsic: eigenfunctions of a permuted mesh are the permuted eigenfunctions."""
-    v, f = bumpy_sphere(subdivisions, seed=2)
+    v, f = smooth_bumpy_sphere(subdivisions, seed=2)
     k = 30
     evals, evecs, _ = eigenbasis(v, f, k)
     perm = np.random.default_rng(3).permutation(len(v))
@@ -91,7 +74,7 @@ def test_vertex_permutation_permutes_eigenfunctions(subdivisions):
     np.testing.assert_allclose(evecs_p[:, simple], evecs[perm][:, simple], atol=1e-6)
 
 
-def test_two_disjoint_spheres():
+def test_two_disjoint_spheres(unit_sphere):
     v1, f1 = unit_sphere(3)
     v2, f2 = unit_sphere(3)
     v = np.vstack([v1, 0.5 * v2 + [3.0, 0.0, 0.0]])  # second sphere smaller (radius 0.5), given second
@@ -114,7 +97,7 @@ def test_two_disjoint_spheres():
     assert np.abs(evecs[:n1, 10:13]).max() < 1e-8  # supported on the small sphere only
 
 
-def test_equal_components_ordered_by_first_vertex():
+def test_equal_components_ordered_by_first_vertex(unit_sphere):
     v1, f1 = unit_sphere(2)
     v = np.vstack([v1, v1 + [3.0, 0.0, 0.0]])
     f = np.vstack([f1, f1 + len(v1)])
@@ -122,8 +105,8 @@ def test_equal_components_ordered_by_first_vertex():
     assert (evecs[: len(v1), 0] > 0).all() and np.abs(evecs[len(v1) :, 0]).max() == 0.0
 
 
-def test_unreferenced_vertex_is_removed_and_gets_a_finite_row():
-    v, f = bumpy_sphere(3)
+def test_unreferenced_vertex_is_removed_and_gets_a_finite_row(smooth_bumpy_sphere):
+    v, f = smooth_bumpy_sphere(3)
     evals, evecs, mass = eigenbasis(v, f, 20)
     v_extra = np.vstack([v, [[4.0, 4.0, 4.0]]])
     evals_x, evecs_x, mass_x = eigenbasis(v_extra, f, 20)
@@ -134,8 +117,8 @@ def test_unreferenced_vertex_is_removed_and_gets_a_finite_row():
     np.testing.assert_allclose(evecs_x[-1], evecs.mean(axis=0), atol=1e-8)
 
 
-def test_small_mass_vertices_get_neighbour_means():
-    v, f = bumpy_sphere(3)
+def test_small_mass_vertices_get_neighbour_means(smooth_bumpy_sphere):
+    v, f = smooth_bumpy_sphere(3)
     _, m = laplacian(v, f)
     threshold = np.sort(m)[3] * (1 + 1e-9)  # removes the 4 smallest-mass vertices
     evals, evecs, mass = eigenbasis(v, f, 15, min_mass=threshold)
@@ -149,7 +132,7 @@ def test_small_mass_vertices_get_neighbour_means():
         np.testing.assert_allclose(evecs[r], evecs[nbrs].mean(axis=0), atol=1e-12)
 
 
-def test_k_out_of_range_raises():
+def test_k_out_of_range_raises(unit_sphere):
     v, f = unit_sphere(1)  # 42 vertices
     with pytest.raises(ConfigError, match="k"):
         eigenbasis(v, f, len(v))
@@ -159,7 +142,7 @@ def test_k_out_of_range_raises():
     assert evecs.shape == (len(v), len(v) - 1)
 
 
-def test_sliced_solver_matches_dense_with_multiplicities():
+def test_sliced_solver_matches_dense_with_multiplicities(unit_sphere):
     """Small slices on the sphere (groups of 2l+1 close eigenvalues, split by the icosahedral symmetry into
     exact clusters of up to 5) must neither lose nor repeat any eigenvalue."""
     v, f = unit_sphere(3)
@@ -174,8 +157,8 @@ def test_sliced_solver_matches_dense_with_multiplicities():
     assert lap._max_residual(A, evals, evecs) < 1e-8 * A.diagonal().mean()
 
 
-def test_robust_method_close_to_cotan_on_good_mesh():
-    v, f = bumpy_sphere(3)
+def test_robust_method_close_to_cotan_on_good_mesh(smooth_bumpy_sphere):
+    v, f = smooth_bumpy_sphere(3)
     evals_c, _, _ = eigenbasis(v, f, 10)
     evals_r, evecs_r, mass_r = eigenbasis(v, f, 10, method="robust")
     check_eigenpairs(v, f, evals_r, evecs_r, mass_r, method="robust")

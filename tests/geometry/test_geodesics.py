@@ -12,14 +12,8 @@ from shapecorr.errors import ConfigError, InvalidMeshError
 from shapecorr.geometry.geodesics import geodesic_distances, vertex_components
 
 
-def unit_sphere(subdivisions: int):
-    s = trimesh.creation.icosphere(subdivisions)
-    v = np.asarray(s.vertices)
-    return v / np.linalg.norm(v, axis=1, keepdims=True), np.asarray(s.faces, dtype=np.int64)
-
-
 @pytest.fixture(scope="module")
-def sphere():
+def sphere(unit_sphere):
     v, f = unit_sphere(4)  # 2562 vertices
     sources = np.array([0, 417, 1300, 2561])
     great_circle = np.arccos(np.clip(v[sources] @ v.T, -1.0, 1.0))
@@ -53,7 +47,7 @@ def test_rows_equal_potpourri3d(sphere):
 
 
 @pytest.mark.parametrize("method", ["heat", "exact"])
-def test_all_pairs_symmetric_zero_diagonal_triangle_inequality(method):
+def test_all_pairs_symmetric_zero_diagonal_triangle_inequality(method, unit_sphere):
     v, f = unit_sphere(2)  # 162 vertices
     D = geodesic_distances(torch.from_numpy(v), torch.from_numpy(f), method=method)
     assert D.shape == (len(v), len(v))
@@ -77,7 +71,7 @@ def test_heat_close_to_exact_on_a_torus():
     assert np.mean(np.abs(heat - exact)[far] / exact[far]) < 0.05
 
 
-def test_disconnected_mesh():
+def test_disconnected_mesh(unit_sphere):
     v1, f1 = unit_sphere(1)
     v = np.vstack([v1, v1 + [4.0, 0.0, 0.0], [[9.0, 9.0, 9.0]]])  # two spheres and an isolated vertex
     f = np.vstack([f1, f1 + len(v1)])
@@ -94,7 +88,7 @@ def test_disconnected_mesh():
     np.testing.assert_allclose(D[n1 : 2 * n1, n1 : 2 * n1], alone, atol=1e-12)
 
 
-def test_invalid_arguments():
+def test_invalid_arguments(unit_sphere):
     v, f = unit_sphere(1)
     with pytest.raises(ConfigError, match="method"):
         geodesic_distances(v, f, [0], method="dijkstra")

@@ -12,14 +12,6 @@ from shapecorr.errors import ConfigError, InvalidMeshError
 from shapecorr.geometry.laplace_beltrami import ORIGINAL_EIGENVALUE_FACTOR, laplacian
 
 
-def bumpy_sphere(subdivisions: int = 2, seed: int = 0, amplitude: float = 0.1):
-    """An icosphere with seeded random radial bumps (no symmetry left)."""
-    s = trimesh.creation.icosphere(subdivisions)
-    rng = np.random.default_rng(seed)
-    v = np.asarray(s.vertices) * (1.0 + amplitude * rng.uniform(-1, 1, (len(s.vertices), 1)))
-    return v, np.asarray(s.faces, dtype=np.int64)
-
-
 def naive_cotan(verts, faces):
     """Oracle: loop over corners, add 1/2 cot(corner) to the opposite edge (dense)."""
     n = len(verts)
@@ -59,7 +51,7 @@ def matlab_stiffness(verts, faces):
 
 
 @pytest.fixture(scope="module")
-def bumpy():
+def bumpy(bumpy_sphere):
     return bumpy_sphere(2)
 
 
@@ -134,7 +126,7 @@ def test_robust_handles_nonmanifold_and_zero_area_faces():
     assert scipy.linalg.eigvalsh(dense).min() > -1e-10 * np.abs(dense).max()
 
 
-def test_invalid_input_raises():
+def test_invalid_input_raises(bumpy_sphere):
     v, f = bumpy_sphere(1)
     bad = v.copy()
     bad[3, 1] = np.nan

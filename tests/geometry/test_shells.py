@@ -21,15 +21,8 @@ from shapecorr.geometry.shells import (
 )
 
 
-def bumpy_sphere(subdivisions: int = 2, seed: int = 0):
-    s = trimesh.creation.icosphere(subdivisions)
-    rng = np.random.default_rng(seed)
-    v = np.asarray(s.vertices) * (1.0 + 0.1 * rng.uniform(-1, 1, (len(s.vertices), 1)))
-    return v, np.asarray(s.faces, dtype=np.int64)
-
-
 @pytest.fixture(scope="module")
-def full_basis():
+def full_basis(bumpy_sphere):
     """All n generalized eigenpairs (dense LAPACK), float64 torch."""
     v, f = bumpy_sphere(2)  # 162 vertices
     L, mass = laplacian(v, f)
@@ -98,7 +91,7 @@ def test_sigmoid_weights_k1_and_invalid():
         sigmoid_shell_weights(0)
 
 
-def test_sigmoid_shell_approaches_shape_and_keeps_dtype():
+def test_sigmoid_shell_approaches_shape_and_keeps_dtype(bumpy_sphere):
     v, f = bumpy_sphere(3)
     evals, evecs, mass = eigenbasis(v, f, 300)
     t = lambda a: torch.from_numpy(a).float()  # noqa: E731
@@ -116,7 +109,7 @@ def test_sigmoid_shell_approaches_shape_and_keeps_dtype():
         smooth_shell(phi, m, verts, k=301, mode="hard")
 
 
-def test_vertex_normals_equal_libigl_area_weighted():
+def test_vertex_normals_equal_libigl_area_weighted(bumpy_sphere):
     v, f = bumpy_sphere(3, seed=1)
     ours = vertex_normals(torch.from_numpy(v), torch.from_numpy(f)).numpy()
     ref = igl.per_vertex_normals(v, f, igl.PER_VERTEX_NORMALS_WEIGHTING_TYPE_AREA)
@@ -133,13 +126,13 @@ def test_normals_point_outward_on_a_sphere_and_have_unit_length():
     assert ((n * v).sum(dim=1) > 0.999).all()
 
 
-def test_unnormalized_face_normals_have_twice_the_area_as_length():
+def test_unnormalized_face_normals_have_twice_the_area_as_length(bumpy_sphere):
     v, f = bumpy_sphere(1)
     fn = face_normals(torch.from_numpy(v), torch.from_numpy(f), normalize=False)
     np.testing.assert_allclose(fn.norm(dim=1).numpy(), igl.doublearea(v, f), rtol=1e-12)
 
 
-def test_normals_differentiable_and_isolated_vertex_is_zero_not_nan():
+def test_normals_differentiable_and_isolated_vertex_is_zero_not_nan(bumpy_sphere):
     v, f = bumpy_sphere(1)
     verts = torch.from_numpy(np.vstack([v, [[3.0, 0.0, 0.0]]])).requires_grad_(True)
     n = vertex_normals(verts, torch.from_numpy(f))

@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from hydra import compose, initialize_config_dir
 from scipy.spatial import cKDTree
 
 from shapecorr.cli.evaluate import evaluate
@@ -32,8 +31,8 @@ N_PAIRS = len(NAMES) * (len(NAMES) - 1)
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    """``(root, cache_dir)`` of the tiny folder; the cache is shared by the tests of this module."""
+def tiny(tmp_path_factory, compose_config):
+    """``(root, cache_dir, compose_config)`` of the tiny folder; the cache is shared by the tests of this module."""
     root = tmp_path_factory.mktemp("tiny_faust")
     for sub in ("off", "corres", "splits"):
         (root / sub).mkdir()
@@ -54,25 +53,24 @@ def tiny(tmp_path_factory):
         write_vts(root / "corres" / f"{name}.sym.vts", perm[mirror[ref]])
     (root / "splits" / "test.txt").write_text("\n".join(NAMES) + "\n")
     (root / "splits" / "train.txt").write_text("\n".join(NAMES[:2]) + "\n")
-    return root, tmp_path_factory.mktemp("cache")
+    return root, tmp_path_factory.mktemp("cache"), compose_config
 
 
 def _cfg(tiny, out: Path, *overrides: str):
-    root, cache = tiny
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        return compose(
-            "evaluate",
-            overrides=[
-                "data=folder",
-                f"data.root={root}",
-                f"paths.cache_dir={cache}",
-                f"output_dir={out}",
-                "progress=false",
-                "n_examples=2",
-                "data.operators.n_eig=30",  # small eigenbases: fast cache fill
-                *overrides,
-            ],
-        )
+    root, cache, compose_config = tiny
+    return compose_config(
+        "evaluate",
+        overrides=[
+            "data=folder",
+            f"data.root={root}",
+            f"paths.cache_dir={cache}",
+            f"output_dir={out}",
+            "progress=false",
+            "n_examples=2",
+            "data.operators.n_eig=30",  # small eigenbases: fast cache fill
+            *overrides,
+        ],
+    )
 
 
 def _read_csv(path: Path) -> list[dict]:
@@ -184,7 +182,7 @@ def test_size_mismatch_is_a_clear_error(tiny, tmp_path, capsys):
 
 def test_entry_point_composes_the_configs(tiny, tmp_path):
     """The root ``evaluate.py`` finds configs/evaluate.yaml and its groups (no run: ``--cfg job``)."""
-    root, cache = tiny
+    root = tiny[0]
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.run(
         [sys.executable, str(REPO / "evaluate.py"), "--cfg", "job", "model=descriptor_nn", "data=folder",

@@ -15,7 +15,6 @@ from pathlib import Path
 import pytest
 import pytorch_lightning as pl
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from pytorch_lightning.callbacks import ModelCheckpoint
 
@@ -40,7 +39,7 @@ def test_train_cli_tiny(cache_dir, tmp_path):
     run_dir = tmp_path / "run"
     proc = _run(["debug=tiny", f"paths.cache_dir={cache_dir}", f"hydra.run.dir={run_dir}",
                  "trainer.limit_train_batches=2", "trainer.limit_val_batches=1", "trainer.limit_test_batches=2",
-                 "+trainer.num_sanity_val_steps=0"])
+                 "trainer.num_sanity_val_steps=0"])
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = [line for line in proc.stdout.strip().splitlines() if line.strip()]
     match = FINAL_LINE.match(lines[-1])
@@ -76,10 +75,8 @@ def test_sampler_order_depends_on_seed_and_epoch_and_resumes():
     assert list(ResumableShuffleSampler(20, seed=4)) != first
 
 
-def _objects(cache_dir, out_dir):
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        cfg = compose("train", overrides=["debug=tiny", f"paths.cache_dir={cache_dir}",
-                                          f"paths.output_dir={out_dir}"])
+def _objects(compose_config, cache_dir, out_dir):
+    cfg = compose_config("train", ["debug=tiny", f"paths.cache_dir={cache_dir}", f"paths.output_dir={out_dir}"])
     pl.seed_everything(0)
     dm = instantiate(cfg.data, _convert_="object")
     model = instantiate(cfg.model, _convert_="object")
@@ -94,16 +91,16 @@ def _trainer(out_dir, callbacks=(), **kwargs):
     return pl.Trainer(**{**options, **kwargs})
 
 
-def test_resume_mid_epoch_matches_uninterrupted_run(cache_dir, tmp_path):
+def test_resume_mid_epoch_matches_uninterrupted_run(cache_dir, tmp_path, compose_config):
     # uninterrupted: 2 epochs x 3 pairs
-    dm, model = _objects(cache_dir, tmp_path / "a")
+    dm, model = _objects(compose_config, cache_dir, tmp_path / "a")
     full = _trainer(tmp_path / "a")
     full.fit(model, datamodule=dm)
     weights = {k: v.clone() for k, v in model.state_dict().items()}
     val_full = float(full.callback_metrics["val/geodesic_error"])
 
     # interrupted after 4 steps (mid second epoch), checkpoint written at that step
-    dm, model = _objects(cache_dir, tmp_path / "b")
+    dm, model = _objects(compose_config, cache_dir, tmp_path / "b")
     ckpt = ModelCheckpoint(dirpath=str(tmp_path / "b" / "ckpt"), every_n_train_steps=4, save_top_k=-1,
                            filename="step{step}", auto_insert_metric_name=False)
     _trainer(tmp_path / "b", [ckpt], max_steps=4).fit(model, datamodule=dm)
@@ -112,7 +109,7 @@ def test_resume_mid_epoch_matches_uninterrupted_run(cache_dir, tmp_path):
     assert not torch.equal(model.state_dict()["backbone.layers.0.weight"], weights["backbone.layers.0.weight"])
 
     # a fresh process state: new objects, resumed from the checkpoint
-    dm, model = _objects(cache_dir, tmp_path / "c")
+    dm, model = _objects(compose_config, cache_dir, tmp_path / "c")
     resumed = _trainer(tmp_path / "c")
     resumed.fit(model, datamodule=dm, ckpt_path=str(path))
     assert resumed.global_step == full.global_step == 6

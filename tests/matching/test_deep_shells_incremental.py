@@ -10,12 +10,8 @@ from shapecorr.errors import ConfigError
 from shapecorr.matching.deep_shells import deformation_from_pairs
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+# Tiny tensors: one torch thread (OpenMP threading only adds overhead); fixture in tests/conftest.py.
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def _problem(n_x=180, n_y=150, kmax=40, seed=0):

@@ -15,8 +15,8 @@ import pytest
 import torch
 
 from shapecorr.data.io import read_vts
-from shapecorr.data.shape import triangle_areas
 from shapecorr.geometry.geodesics import geodesic_distances
+from shapecorr.geometry.mesh import triangle_areas
 from shapecorr.matching.deep_shells import DeepShellsConfig, deep_shells_query, make_spectral_shape
 from shapecorr.nn.spectral_conv import SpectralFilterBank, load_original_deep_shells_weights
 

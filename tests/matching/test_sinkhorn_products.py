@@ -12,12 +12,8 @@ from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.matching.sinkhorn import pairwise_sq_dists, sinkhorn_log_reference, sinkhorn_sq_euclidean_products
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+# Tiny tensors: one torch thread (OpenMP threading only adds overhead); fixture in tests/conftest.py.
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def _inputs(n, m, d, p, q, dtype=torch.float64, seed=0):

@@ -7,13 +7,11 @@ at corresponding points) standing in for SHOT, which keeps the tests independent
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import trimesh
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from shapecorr.data.datasets import PairSample, ShapeSample
@@ -22,7 +20,6 @@ from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.geometry.laplace_beltrami import eigenbasis
 from shapecorr.models.deep_shells import DeepShells
 
-REPO = Path(__file__).resolve().parents[2]
 N_EIG = 40
 N_CHANNELS = 16
 # small but complete settings: 3 training levels, short refinement within N_EIG eigenpairs
@@ -165,14 +162,9 @@ def test_checkpoint_roundtrip_without_arguments(tmp_path):
         assert torch.equal(a, b), name
 
 
-def _compose(name: str, overrides: list[str]):
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        return compose(name, overrides=overrides)
-
-
-def test_configs_compose_and_instantiate(tmp_path):
-    cfg = _compose("train", [f"paths.cache_dir={tmp_path}", "paths.output_dir=" + str(tmp_path), "model.lr=0.001",
-                             "model.level_weights=[0,0,0,0,1,1,1,1]"])
+def test_configs_compose_and_instantiate(tmp_path, compose_config):
+    cfg = compose_config("train", [f"paths.cache_dir={tmp_path}", "paths.output_dir=" + str(tmp_path),
+                                   "model.lr=0.001", "model.level_weights=[0,0,0,0,1,1,1,1]"])
     model = instantiate(cfg.model, _convert_="object")
     assert isinstance(model, DeepShells) and model.lr == 1e-3
     assert torch.allclose(model.level_weights, torch.tensor([0, 0, 0, 0, 0.25, 0.25, 0.25, 0.25]))
@@ -180,13 +172,14 @@ def test_configs_compose_and_instantiate(tmp_path):
     trainer = instantiate(cfg.trainer, logger=False, enable_checkpointing=False)
     assert trainer.max_epochs == cfg.trainer.max_epochs
 
-    exp = _compose("train", ["experiment=deep_shells_faust_r", "data.root=/nonexistent", "logger=csv"])
+    exp = compose_config("train", ["experiment=deep_shells_faust_r", "data.root=/nonexistent", "logger=csv"])
     assert exp.trainer.accumulate_grad_batches == 53 and exp.model.num_samples == 2000
     assert exp.model.lr == 1e-4 and exp.trainer.limit_train_batches == 1.0
     assert exp.data.splits.train.index_range == [0, 80]
     assert exp.logger._target_.endswith("CSVLogger")
 
-    ablation = instantiate(_compose("evaluate", ["model=deep_shells_ablation"]).model, _convert_="object")
+    ablation = instantiate(compose_config("evaluate", ["model=deep_shells_ablation"]).model, _convert_="object")
     assert ablation.backbone is None and ablation.refine
-    ev = instantiate(_compose("evaluate", ["model=deep_shells", "model.backbone=identity"]).model, _convert_="object")
+    ev = instantiate(compose_config("evaluate", ["model=deep_shells", "model.backbone=identity"]).model,
+                     _convert_="object")
     assert ev.backbone is None

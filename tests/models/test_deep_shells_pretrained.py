@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf.errors import MissingMandatoryValue
@@ -26,7 +25,6 @@ from shapecorr.errors import ConfigError
 from shapecorr.models.deep_shells import PRETRAINED_CHECKPOINT_KEY, DeepShells
 from shapecorr.nn.spectral_conv import ORIGINAL_EIGENVALUE_FACTOR
 
-REPO = Path(__file__).resolve().parents[2]
 C_IN, C_OUT, N_BASIS, N_EIGS = 6, 4, 5, 12
 SMALL = {"in_channels": C_IN, "out_channels": C_OUT, "num_basis": N_BASIS, "num_eigs": N_EIGS, "max_frequency": 50.0,
          "num_samples": 50, "layer": {"k_array": [6, 8], "refine_k_min": 6, "refine_k_max": 10, "refine_levels": 2}}
@@ -128,15 +126,10 @@ def test_bad_weights_raise_config_error_naming_the_file(tmp_path, case):
     assert str(path) in str(err.value)
 
 
-def _compose_evaluate(overrides):
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        return compose("evaluate", overrides=["model=deep_shells_published", *overrides])
-
-
-def test_published_config_reads_the_environment(tmp_path, monkeypatch):
+def test_published_config_reads_the_environment(tmp_path, monkeypatch, compose_config):
     monkeypatch.delenv("SHAPECORR_DEEP_SHELLS_WEIGHTS", raising=False)
-    cfg = _compose_evaluate(["model.in_channels=6", "model.out_channels=4", "model.num_basis=5",
-                             "model.num_eigs=12", "model.max_frequency=50.0"])
+    cfg = compose_config("evaluate", ["model=deep_shells_published", "model.in_channels=6", "model.out_channels=4",
+                                      "model.num_basis=5", "model.num_eigs=12", "model.max_frequency=50.0"])
     with pytest.raises(MissingMandatoryValue, match="model.pretrained"):
         instantiate(cfg.model, _convert_="object")
     path = tmp_path / "ckpt.pth"
@@ -156,14 +149,14 @@ def test_published_config_reads_the_environment(tmp_path, monkeypatch):
 
 
 @pytest.mark.reference
-def test_released_weights_reproduce_the_original_features():
+def test_released_weights_reproduce_the_original_features(compose_config):
     golden = os.environ.get("SHAPECORR_DEEP_SHELLS_GOLDEN")
     if not golden:
         pytest.skip("SHAPECORR_DEEP_SHELLS_GOLDEN is not set: point it to the Deep Shells golden files (published "
                     "weights and the original's features) to run this test")
     golden = Path(golden)
-    model = instantiate(_compose_evaluate([f"model.pretrained={golden / PUBLISHED_WEIGHTS}"]).model,
-                        _convert_="object")
+    cfg = compose_config("evaluate", ["model=deep_shells_published", f"model.pretrained={golden / PUBLISHED_WEIGHTS}"])
+    model = instantiate(cfg.model, _convert_="object")
     pair = "tr_reg_080__tr_reg_081"
     inputs = np.load(golden / f"inputs_{pair}.npz")
     expected = torch.from_numpy(np.load(golden / f"original_output_{pair}.npz")["features_x"])

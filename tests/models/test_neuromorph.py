@@ -18,7 +18,6 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 import shapecorr.models.neuromorph as nm
@@ -268,13 +267,9 @@ def test_schedule_callbacks_drive_the_module(tmp_path):
     assert model.n_intermediate == 3 and model.lambda_geo == 0.0
 
 
-def _compose(overrides):
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        return compose("train", overrides=overrides)
-
-
-def test_configs_compose_with_the_published_settings(tmp_path):
-    cfg = _compose(["model=neuromorph", "debug=tiny", f"paths.cache_dir={tmp_path}", f"paths.output_dir={tmp_path}"])
+def test_configs_compose_with_the_published_settings(tmp_path, compose_config):
+    cfg = compose_config("train", ["model=neuromorph", "debug=tiny", f"paths.cache_dir={tmp_path}",
+                                   f"paths.output_dir={tmp_path}"])
     # the run configs' Deep Shells settings (configs/quick/) do not reach another model
     assert not nm.LEGACY_CHECKPOINT_OPTIONS & set(cfg.model)
     with warnings.catch_warnings():
@@ -286,8 +281,8 @@ def test_configs_compose_with_the_published_settings(tmp_path):
     assert callbacks["neuromorph_T"].schedule.values == [0, 1, 3, 7]
     assert callbacks["neuromorph_T"].schedule.epochs == [0, 300, 450, 525]
     assert callbacks["neuromorph_lambda_geo"].schedule.epochs == [0, 300]
-    exp = _compose(["experiment=neuromorph_faust_r", f"paths.cache_dir={tmp_path}", f"paths.output_dir={tmp_path}",
-                    f"data.root={tmp_path}"])
+    exp = compose_config("train", ["experiment=neuromorph_faust_r", f"paths.cache_dir={tmp_path}",
+                                   f"paths.output_dir={tmp_path}", f"data.root={tmp_path}"])
     assert exp.model._target_ == "shapecorr.models.neuromorph.NeuroMorph" and exp.model.query_resolution == 2000
     assert exp.trainer.accumulate_grad_batches == 16 and exp.trainer.max_epochs == 600
     assert exp.trainer.check_val_every_n_epoch == 10 and exp.checkpoint.every_n_epochs == 10
@@ -344,7 +339,7 @@ def test_train_cli_tiny_smoke_run(tmp_path):
     args = ["model=neuromorph", "debug=tiny", f"data.root={data}", "~data.synthetic",  # a folder, not generated
             "data.operators.n_eig=16", "data.prepare_workers=1", f"paths.cache_dir={tmp_path / 'cache'}",
             f"hydra.run.dir={run_dir}", "trainer.limit_train_batches=2", "trainer.limit_val_batches=1",
-            "trainer.limit_test_batches=2", "+trainer.num_sanity_val_steps=0", "trainer.enable_progress_bar=false",
+            "trainer.limit_test_batches=2", "trainer.num_sanity_val_steps=0", "trainer.enable_progress_bar=false",
             "model.augment.resolution=[300,500]", "model.augment.variants=2"]
     env = {**os.environ, "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1"}
     proc = subprocess.run([sys.executable, str(REPO / "train.py"), *args], cwd=REPO, capture_output=True, text=True,

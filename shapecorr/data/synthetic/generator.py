@@ -36,7 +36,6 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from shapecorr.data.io import write_mesh, write_vts
-from shapecorr.data.shape import triangle_areas
 from shapecorr.data.synthetic import corruptions, poses
 from shapecorr.data.synthetic.config import GENERATOR_VERSION, SyntheticConfig
 from shapecorr.data.synthetic.groundtruth import chart_map, interpolate, nearest_vertices, trace_to_surface
@@ -47,6 +46,7 @@ from shapecorr.data.synthetic.skinning import (
 )
 from shapecorr.data.synthetic.templates import Template, build_template
 from shapecorr.errors import DatasetError, InvalidMeshError
+from shapecorr.geometry.mesh import triangle_areas
 from shapecorr.geometry.remeshing import remesh
 from shapecorr.geometry.sampling import farthest_point_sampling
 
