@@ -355,15 +355,18 @@ class OperatorConfig:
         return cls(**options)
 
     def with_request(self, request: OperatorRequest | None = None, **changes: Any) -> "OperatorConfig":
-        """A copy with ``request`` merged in; ``changes`` are further ``{name: params}`` requests, data-wide
-        settings (``laplacian``) or the flat shorthands (``n_eig`` is then a lower bound, ``descriptors`` added)."""
+        """A copy with ``request`` merged in; ``changes`` are further ``{name: params}`` requests, ``params``
+        (dataset parameter defaults, updated), data-wide settings (``laplacian``) or the flat shorthands (``n_eig``
+        is then a lower bound, ``descriptors`` added)."""
         request = dict(as_request(request))
+        extra_params = as_request(changes.pop("params", None), "params: ")
         settings = {k: changes.pop(k) for k in DATA_SETTINGS if k in changes}
         legacy = {k: changes.pop(k) for k in LEGACY_OPTIONS if k in changes}
         legacy_request, legacy_params = _legacy_options(legacy)
         params = {name: dict(values) for name, values in self.params.items()}
-        for name, values in legacy_params.items():
-            params.setdefault(name, {}).update(values)
+        for source in (legacy_params, extra_params):
+            for name, values in source.items():
+                params.setdefault(name, {}).update(values)
         merged = merge_requests(self.request, request, as_request(changes), legacy_request)
         return OperatorConfig(request=merged, params=params, laplacian=settings.get("laplacian", self.laplacian))
 
@@ -564,16 +567,20 @@ def feature_names() -> tuple[str, ...]:
     return tuple(name for name, op in REGISTRY.items() if op.feature)
 
 
-def warn_legacy_request(request: Mapping[str, Any], where: str) -> dict[str, dict[str, Any]]:
-    """A ``required_operators`` of the flat form (``{"descriptors": [...], "n_eig": k}``) as a request, with a
-    FutureWarning; a request in the new form is returned checked."""
-    request = dict(_plain(request) or {})
+def required_request(matcher: Any) -> dict[str, dict[str, Any]]:
+    """The operator request of a model or matcher: its ``required_operators`` (``{}`` when it has none), checked.
+
+    The flat form of earlier versions (``{"descriptors": [...], "n_eig": k}``) is still read, with a
+    FutureWarning.
+    """
+    request = dict(_plain(getattr(matcher, "required_operators", None)) or {})
+    where = f"{type(matcher).__name__}: "
     legacy = {k: request.pop(k) for k in LEGACY_OPTIONS if k in request}
     if not legacy:
         return as_request(request, where)
     warnings.warn(f"{where}required_operators in the flat form {sorted(legacy)} is deprecated; declare "
                   "{operator name: {param: value}}, e.g. {'eigenbasis': {'k': 200}, 'shot': {}}",
-                  FutureWarning, stacklevel=3)
+                  FutureWarning, stacklevel=2)
     legacy_request, _ = _legacy_options(legacy)
     return merge_requests(request, legacy_request)
 
@@ -598,5 +605,5 @@ __all__ = [
     "merge_requests",
     "operator_names",
     "register_operator",
-    "warn_legacy_request",
+    "required_request",
 ]
