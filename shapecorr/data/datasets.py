@@ -21,10 +21,11 @@ import hashlib
 import json
 import os
 import re
+from collections.abc import Iterable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -34,7 +35,12 @@ from tqdm.auto import tqdm
 
 from shapecorr.data.cache import CacheKey, ShapeCache, default_cache_root
 from shapecorr.data.io import check_vts_lengths, load_shape, read_vts
-from shapecorr.data.operators import REGISTRY, OperatorConfig, compute_operators, geodesics_cached
+from shapecorr.data.operators import (
+    REGISTRY,
+    OperatorConfig,
+    compute_operators,
+    geodesics_cached,
+)
 from shapecorr.data.shape import Normalization, Shape
 from shapecorr.errors import ConfigError, DatasetError
 
@@ -154,9 +160,9 @@ class ShapeSample:
                 out[name] = arrays[name]
         return out
 
-    def to(self, device: torch.device | str) -> "ShapeSample":
+    def to(self, device: torch.device | str) -> ShapeSample:
         """Copy with every tensor on ``device``."""
-        move = lambda t: None if t is None else t.to(device)  # noqa: E731
+        move = lambda t: None if t is None else t.to(device)
         return ShapeSample(
             shape=self.shape.to(device),
             operators={name: {k: v.to(device) for k, v in arrays.items()} for name, arrays in self.operators.items()},
@@ -179,7 +185,7 @@ class PairSample:
     def name(self) -> str:
         return pair_name(self.x.name, self.y.name)
 
-    def to(self, device: torch.device | str) -> "PairSample":
+    def to(self, device: torch.device | str) -> PairSample:
         return PairSample(self.x.to(device), self.y.to(device))
 
 

@@ -25,14 +25,14 @@ from __future__ import annotations
 import functools
 import time
 from collections import OrderedDict
-from typing import Any, Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
 
 import numpy as np
 import pytorch_lightning as pl
 import torch
 
 from shapecorr.errors import ConfigError
-
 from shapecorr.eval import metrics
 from shapecorr.eval.protocol import score_map
 from shapecorr.matching.result import MatchResult

@@ -39,10 +39,11 @@ full schedule (``refine=False`` disables it everywhere).
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, replace
 from os import PathLike
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -59,10 +60,20 @@ from shapecorr.matching.deep_shells import (
     shell_size,
 )
 from shapecorr.matching.result import MatchResult
-from shapecorr.models.base import CorrespondenceModule, adam, as_factory, build_optimizers, factory_node
+from shapecorr.models.base import (
+    CorrespondenceModule,
+    adam,
+    as_factory,
+    build_optimizers,
+    factory_node,
+)
 from shapecorr.nn.backbone import backbone_node
 from shapecorr.nn.identity import IdentityBackbone
-from shapecorr.nn.spectral_conv import SpectralBackbone, SpectralFilterBank, load_original_deep_shells_weights
+from shapecorr.nn.spectral_conv import (
+    SpectralBackbone,
+    SpectralFilterBank,
+    load_original_deep_shells_weights,
+)
 
 #: Deep Shells optimizer: Adam with learning rate 1e-4 (Eisenberger et al. 2020, §5; the authors' train.py).
 DEFAULT_LR = 1e-4

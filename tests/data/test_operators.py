@@ -12,7 +12,12 @@ import trimesh
 from shapecorr.data import operators as ops
 from shapecorr.data.cache import ShapeCache
 from shapecorr.data.datasets import ShapeSample
-from shapecorr.data.operators import OperatorConfig, compute_operator, compute_operators, merge_requests
+from shapecorr.data.operators import (
+    OperatorConfig,
+    compute_operator,
+    compute_operators,
+    merge_requests,
+)
 from shapecorr.data.shape import make_shape
 from shapecorr.errors import ConfigError
 
@@ -101,7 +106,7 @@ def test_registering_a_sparse_operator_reaches_the_sample(tmp_path, mesh, monkey
     np.testing.assert_allclose(grad.to_dense().numpy(), arrays["toy_gradient"]["grad"].toarray())
     assert sample.features == {} and sample.to("cpu").operators["toy_gradient"]["grad"].is_sparse
     with pytest.raises(ConfigError, match="no eigenbasis"):
-        sample.evecs
+        _ = sample.evecs
 
 
 def test_sample_views_match_the_operators(tmp_path, mesh):

@@ -105,7 +105,7 @@ def test_level_weights_select_levels(pair):
 
 def test_sample_generator_depends_on_seed_epoch_batch():
     model = small()
-    draw = lambda m, b: torch.randint(0, 10**6, (5,), generator=m.sample_generator(b))  # noqa: E731
+    draw = lambda m, b: torch.randint(0, 10**6, (5,), generator=m.sample_generator(b))
     assert torch.equal(draw(model, 4), draw(model, 4))
     assert not torch.equal(draw(model, 4), draw(model, 5))
     assert not torch.equal(draw(model, 4), draw(small(seed=1), 4))
@@ -172,9 +172,9 @@ def test_invalid_options_raise_config_error():
 
 
 def test_checkpoint_roundtrip_without_arguments(tmp_path):
-    import pytorch_lightning as pl
-
     from functools import partial
+
+    import pytorch_lightning as pl
 
     model = small(optimizer=partial(torch.optim.Adam, lr=3e-4),
                   scheduler=partial(torch.optim.lr_scheduler.StepLR, step_size=5))
