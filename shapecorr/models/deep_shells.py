@@ -187,7 +187,8 @@ class DeepShells(CorrespondenceModule):
             if backbone is not None and not isinstance(backbone, str):
                 raise ConfigError(f"deep_shells: the filter-bank options {sorted(set(legacy) - {'lr'})} belong to "
                                   "the backbone node (model.backbone.*), not to the model")
-            warnings.warn(f"deep_shells: options {sorted(set(legacy) | ({'backbone'} if backbone else set()))} of "
+            mapped = sorted((set(legacy) - {"lr"}) | ({"backbone"} if backbone else set()))
+            warnings.warn(f"deep_shells: options {mapped} of "
                           "an old checkpoint/config are mapped to model.backbone (configs/model/backbone/); write "
                           "model/backbone=spectral_conv|identity and model.backbone.<option> instead",
                           FutureWarning, stacklevel=2)
