@@ -121,7 +121,7 @@ class Operator:
     name: str
     defaults: Mapping[str, Any]
     version: int | str
-    compute: Callable[["OperatorContext", dict], Mapping[str, Any]]
+    compute: Callable[[OperatorContext, dict], Mapping[str, Any]]
     merge: Callable[[Mapping[str, Any], Mapping[str, Any]], dict]
     satisfies: Callable[[Mapping[str, Any], Mapping[str, Any]], bool] | None = None
     restrict: Callable[[dict, Mapping[str, Any]], dict] = _unchanged
@@ -177,7 +177,7 @@ def register_operator(
     *,
     defaults: Mapping[str, Any],
     version: int | str,
-    compute: Callable[["OperatorContext", dict], Mapping[str, Any]],
+    compute: Callable[[OperatorContext, dict], Mapping[str, Any]],
     merge: Callable[[Mapping[str, Any], Mapping[str, Any]], dict] | None = None,
     satisfies: Callable[[Mapping[str, Any], Mapping[str, Any]], bool] | None = None,
     restrict: Callable[[dict, Mapping[str, Any]], dict] | None = None,
@@ -347,14 +347,14 @@ class OperatorConfig:
         object.__setattr__(self, "laplacian", str(laplacian))
 
     @classmethod
-    def from_options(cls, options: "Mapping[str, Any] | OperatorConfig | None") -> "OperatorConfig":
+    def from_options(cls, options: Mapping[str, Any] | OperatorConfig | None) -> OperatorConfig:
         """From a data config's ``operators`` node (a mapping, possibly OmegaConf), an OperatorConfig or None."""
         if isinstance(options, OperatorConfig):
             return options
         options = dict(_plain(options) or {})
         return cls(**options)
 
-    def with_request(self, request: OperatorRequest | None = None, **changes: Any) -> "OperatorConfig":
+    def with_request(self, request: OperatorRequest | None = None, **changes: Any) -> OperatorConfig:
         """A copy with ``request`` merged in; ``changes`` are further ``{name: params}`` requests, ``params``
         (dataset parameter defaults, updated), data-wide settings (``laplacian``) or the flat shorthands (``n_eig``
         is then a lower bound, ``descriptors`` added)."""
@@ -480,7 +480,7 @@ def compute_operator(cache: ShapeCache, verts, faces, name: str, params: Mapping
     return as_stored(key, computed)
 
 
-def compute_operators(cache: ShapeCache, verts, faces, config: "OperatorConfig | None" = None,
+def compute_operators(cache: ShapeCache, verts, faces, config: OperatorConfig | None = None,
                       request: OperatorRequest | None = None) -> dict[str, dict[str, Any]]:
     """Every operator of ``config`` (plus ``request``) for one shape, cached.
 

@@ -16,7 +16,8 @@ never a string naming it, so a new backbone is one module plus one config file (
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import torch
 from torch import nn

@@ -15,6 +15,7 @@ from shapecorr.errors import ConfigError
 from shapecorr.nn.backbone import Backbone, backbone_node
 from shapecorr.nn.identity import IdentityBackbone
 from shapecorr.nn.spectral_conv import SpectralBackbone, SpectralFilterBank
+
 REPO = Path(__file__).resolve().parents[2]
 
 
