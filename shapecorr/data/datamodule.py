@@ -17,6 +17,7 @@ from torch.utils.data import DataLoader, Sampler
 
 from shapecorr.data.datasets import PairDataset, PairSample, ShapeDataset
 from shapecorr.data.operators import OperatorConfig
+from shapecorr.data.operators import plain_container as _plain
 from shapecorr.data.shape import Normalization
 from shapecorr.errors import ConfigError
 
@@ -28,18 +29,6 @@ _PAIR_OPTIONS = {"pairs", "include_self", "pair_file", "max_pairs"}
 def _first_item(batch: list[PairSample]) -> PairSample:
     """Collate for batch size 1: the pair itself (no stacking of differently sized meshes)."""
     return batch[0]
-
-
-def _plain(value: Any) -> Any:
-    """OmegaConf containers -> Python containers (no-op on plain values)."""
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-
-        if isinstance(value, (DictConfig, ListConfig)):
-            return OmegaConf.to_container(value, resolve=True)
-    except ImportError:  # pragma: no cover - hydra is a dependency
-        pass
-    return value
 
 
 def _dataclass_from(cls, value):

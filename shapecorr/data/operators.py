@@ -232,7 +232,7 @@ class _Versions(Mapping):
 OPERATOR_VERSIONS: Mapping[str, int | str] = _Versions()
 
 
-def _plain(value: Any) -> Any:
+def plain_container(value: Any) -> Any:
     """OmegaConf containers -> Python containers (no-op on plain values)."""
     try:
         from omegaconf import DictConfig, ListConfig, OmegaConf
@@ -245,12 +245,12 @@ def _plain(value: Any) -> Any:
 
 def as_request(request: OperatorRequest | None, where: str = "") -> dict[str, dict[str, Any]]:
     """``request`` checked (registered names, known parameters) as a plain ``{name: {param: value}}`` dict."""
-    request = _plain(request) or {}
+    request = plain_container(request) or {}
     if not isinstance(request, Mapping):
         raise ConfigError(f"{where}an operator request must be a mapping {{name: {{param: value}}}}, got {request!r}")
     out = {}
     for name, params in request.items():
-        params = _plain(params) or {}
+        params = plain_container(params) or {}
         if not isinstance(params, Mapping):
             raise ConfigError(f"{where}parameters of operator {name!r} must be a mapping, got {params!r}")
         get_operator(name).check_params(params, where)
@@ -351,7 +351,7 @@ class OperatorConfig:
         """From a data config's ``operators`` node (a mapping, possibly OmegaConf), an OperatorConfig or None."""
         if isinstance(options, OperatorConfig):
             return options
-        options = dict(_plain(options) or {})
+        options = dict(plain_container(options) or {})
         return cls(**options)
 
     def with_request(self, request: OperatorRequest | None = None, **changes: Any) -> OperatorConfig:
@@ -573,7 +573,7 @@ def required_request(matcher: Any) -> dict[str, dict[str, Any]]:
     The flat form of earlier versions (``{"descriptors": [...], "n_eig": k}``) is still read, with a
     FutureWarning.
     """
-    request = dict(_plain(getattr(matcher, "required_operators", None)) or {})
+    request = dict(plain_container(getattr(matcher, "required_operators", None)) or {})
     where = f"{type(matcher).__name__}: "
     legacy = {k: request.pop(k) for k in LEGACY_OPTIONS if k in request}
     if not legacy:
@@ -604,6 +604,7 @@ __all__ = [
     "merge_by",
     "merge_requests",
     "operator_names",
+    "plain_container",
     "register_operator",
     "required_request",
 ]
