@@ -37,7 +37,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if not args.faust_r:
         parser.error("give --faust-r or set SHAPECORR_FAUST_R")
-    ops = OperatorConfig(n_eig=args.n_eig, descriptors=tuple(d for d in args.descriptors.split(",") if d))
+    descriptors = [d for d in args.descriptors.split(",") if d]
+    ops = OperatorConfig(request={"eigenbasis": {"k": args.n_eig}, **{d: {} for d in descriptors}})
     with tempfile.TemporaryDirectory() as cache:
         ds = ShapeDataset(args.faust_r, names=[args.shape], operators=ops, cache_dir=cache)
         t0 = time.perf_counter()

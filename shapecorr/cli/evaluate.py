@@ -11,7 +11,8 @@ Options: ``configs/evaluate.yaml``. Steps of ``task=match`` (the default):
 
 1. Build the matcher (``hydra.utils.instantiate(cfg.model)``, or ``load_from_checkpoint(ckpt_path)`` of the
    model's class, or :class:`~shapecorr.matching.baselines.PrecomputedMaps` for ``maps_dir``) and the data
-   module; the matcher's ``required_operators`` (e.g. a descriptor) are added to the data's operators.
+   module; the matcher's ``required_operators`` (an operator request, e.g. ``{"wks": {}}``;
+   :mod:`shapecorr.data.operators`) are added to the data's operators.
 2. Fill the shape cache of the split, geodesic matrices included (rank 0, parallel, progress bar).
 3. Evaluate this rank's shard of the pairs (:mod:`shapecorr.eval.protocol`): per-pair records, maps.
 4. Rank 0 merges the records of all pairs into ``metrics.json``, ``per_pair.csv``, ``pck.png`` and renders
@@ -62,6 +63,7 @@ from omegaconf.errors import OmegaConfBaseException
 from shapecorr.cli.common import exit_on_user_error, user_config_error
 from shapecorr.data.cache import atomic_open
 from shapecorr.data.datasets import PairDataset, pair_name
+from shapecorr.data.operators import required_request
 from shapecorr.errors import ConfigError
 from shapecorr.eval import protocol, reports
 from shapecorr.eval.export import INTERP_DIR, map_paths
@@ -252,9 +254,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
         raise user_config_error(err) from err
     except hydra.errors.InstantiationException as err:
         raise ConfigError(f"cannot build the data module: {err}") from None
-    required = dict(getattr(matcher, "required_operators", {}) or {})
-    if required:
-        dm.with_operators(**required)
+    dm.with_operators(required_request(matcher))
     split = str(cfg.pairs)
     shapes = dm.shapes(split)
     base = PairDataset(shapes, pair_file=cfg.pair_file) if cfg.get("pair_file") else dm.pairs(split)

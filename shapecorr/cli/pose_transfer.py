@@ -39,7 +39,7 @@ from shapecorr.data.datasets import (
     sample_with_operators,
 )
 from shapecorr.data.io import write_map, write_mesh
-from shapecorr.data.operators import OperatorConfig
+from shapecorr.data.operators import OperatorConfig, required_request
 from shapecorr.data.shape import Normalization
 from shapecorr.errors import ConfigError, MeshReadError
 from shapecorr.eval import protocol
@@ -74,7 +74,7 @@ def load_sample(
         ``.off``, ``.ply`` or ``.obj`` file.
     normalization : Normalization
     operators : OperatorConfig
-        Eigenbasis size and descriptors to provide (computed on a cache miss).
+        The operators to provide (computed on a cache miss).
     cache : ShapeCache
 
     Raises
@@ -193,9 +193,7 @@ def run_pose_transfer(cfg: DictConfig) -> dict[str, Any]:
         operators=data.get("operators"),
         cache_dir=data.get("cache_dir"),
     )
-    required = dict(getattr(matcher, "required_operators", {}) or {})
-    if required:
-        dm.with_operators(**required)
+    dm.with_operators(required_request(matcher))
     cache = ShapeCache(default_cache_root() if dm.cache_dir is None else dm.cache_dir)
     x = load_sample(source, dm.normalization, dm.operators, cache)
     y = load_sample(target, dm.normalization, dm.operators, cache)

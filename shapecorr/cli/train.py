@@ -5,7 +5,8 @@
     python train.py ckpt_path=outputs/train/<run>/checkpoints/last.ckpt   # resume (same data order and samples)
 
 Options: ``configs/train.yaml``. Steps: seed everything; build the data module and the model
-(``hydra.utils.instantiate``); add the model's ``required_operators`` to the data; fit with checkpoints
+(``hydra.utils.instantiate``); add the model's ``required_operators`` (an operator request, see
+:mod:`shapecorr.data.operators`) to the data; fit with checkpoints
 (``<run>/checkpoints``: ``last.ckpt`` plus one every ``checkpoint.every_n_epochs`` epochs, or every
 ``checkpoint.every_n_train_steps`` optimizer steps when that is set) and the logger of the ``logger`` group under
 the Hydra run directory; with ``test=true`` run the test split on the final weights and print
@@ -28,6 +29,7 @@ from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
 from pytorch_lightning.utilities.exceptions import MisconfigurationException
 
 from shapecorr.cli.common import exit_on_user_error, user_config_error
+from shapecorr.data.operators import required_request
 from shapecorr.errors import ConfigError
 
 CHECKPOINT_DIR = "checkpoints"
@@ -117,10 +119,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         raise user_config_error(err) from err
     if not any(p.requires_grad for p in model.parameters()):
         raise ConfigError(f"{type(model).__name__} has no trainable parameters with these options (e.g. "
-                          "model.backbone=identity): nothing to train; evaluate it with evaluate.py instead")
-    required = dict(getattr(model, "required_operators", {}) or {})
-    if required:
-        dm.with_operators(**required)
+                          "model/backbone=identity): nothing to train; evaluate it with evaluate.py instead")
+    dm.with_operators(required_request(model))
     try:
         trainer.fit(model, datamodule=dm, ckpt_path=str(ckpt_path) if ckpt_path else None)
     except MisconfigurationException as err:  # options Lightning only checks once fitting starts

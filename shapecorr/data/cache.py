@@ -9,7 +9,11 @@ computing module bumps whenever its output changes. Entries live in
 Storage policy:
 
 * ``.npz`` written with ``allow_pickle=False`` and read with ``allow_pickle=False``: only numeric arrays
-  (bool, int, uint, float) can be stored; nothing is ever unpickled.
+  (bool, int, uint, float) and ``scipy.sparse`` matrices/arrays can be stored; nothing is ever unpickled. A
+  sparse value ``name`` is stored as CSR (or CSC, when given as CSC) in the members
+  ``__sparse__<name>__{data,indices,indptr,shape}`` (names users cannot give: theirs may not start with
+  ``__``) and read back as a ``scipy.sparse.csr_array`` / ``csc_array``; the metadata lists it under
+  ``sparse``.
 * float64 arrays are stored as float32 (the compute precision is float64, the storage precision float32,
   as diffusion-net does) unless the key says ``keep_float64=True``; the flag is part of the key so a
   float32 entry never answers a float64 request. Other dtypes are stored unchanged. A miss returns the
@@ -29,8 +33,9 @@ Storage policy:
   without writing anything.
 
 Upgrading entries (e.g. an eigenbasis with k' >= k serving a request for k) is left to the caller, who
-knows which parameters are monotone: :meth:`ShapeCache.find` lists the stored keys of one quantity of one
-mesh that satisfy a predicate, then :meth:`ShapeCache.get` loads the chosen one::
+knows which parameters are monotone (:mod:`shapecorr.data.operators` does it for the registered operators):
+:meth:`ShapeCache.find` lists the stored keys of one quantity of one mesh that satisfy a predicate, then
+:meth:`ShapeCache.get` loads the chosen one::
 
     keys = cache.find("eigenbasis", h, lambda key: key.version == V and key.params["k"] >= k)
     if keys:
@@ -55,6 +60,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
+import scipy.sparse as sp
 
 from shapecorr.errors import CacheError, NumericalError
 from shapecorr.geometry.mesh import as_numpy
@@ -72,6 +78,10 @@ STALE_TEMP_SECONDS = 3600.0
 TEMP_SUFFIX = ".tmp"
 
 _META = "__meta__"
+# Members of a sparse value: __sparse__<name>__<part>.
+_SPARSE_PREFIX = "__sparse__"
+_SPARSE_PARTS = ("data", "indices", "indptr", "shape")
+_SPARSE_FORMATS = {"csr": sp.csr_array, "csc": sp.csc_array}
 _ARRAY_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 # np.savez takes these as its own keyword arguments, so they cannot name arrays.
 _RESERVED_NAMES = frozenset({"file", "allow_pickle"})
@@ -230,29 +240,87 @@ class CacheKey:
         return hashlib.sha256(self.canonical.encode("utf-8")).hexdigest()
 
 
-def _prepare_arrays(key: CacheKey, arrays: Mapping[str, Any]) -> dict[str, np.ndarray]:
-    """Validate ``arrays`` and convert them to their storage dtypes (float64 -> float32 unless kept)."""
+def _sparse_member(name: str, part: str) -> str:
+    return f"{_SPARSE_PREFIX}{name}__{part}"
+
+
+def _check_stored(key: CacheKey, name: str, a: np.ndarray) -> np.ndarray:
+    """``a`` in its storage dtype (float64 -> float32 unless kept), refused when not numeric or not finite."""
+    if a.dtype.kind not in "biuf":
+        raise CacheError(
+            f"array {name!r} of cache entry {key.name!r} has dtype {a.dtype}; only numeric arrays are stored"
+        )
+    if a.dtype == np.float64 and not key.keep_float64:
+        with np.errstate(over="ignore"):  # overflow to inf is reported just below
+            a = a.astype(np.float32)
+    if a.dtype.kind == "f" and not np.isfinite(a).all():
+        raise NumericalError(
+            f"array {name!r} of {key.name!r} contains NaN/Inf ({int((~np.isfinite(a)).sum())} entries"
+            f"{'' if key.keep_float64 else ', after conversion to float32'}); refusing to cache it"
+        )
+    return np.ascontiguousarray(a)
+
+
+def _prepare_arrays(key: CacheKey, arrays: Mapping[str, Any]) -> dict[str, Any]:
+    """Validate ``arrays`` and convert them to their storage dtypes (float64 -> float32 unless kept); sparse
+    values become ``scipy.sparse`` CSR (CSC stays CSC) arrays with sorted indices."""
     if not isinstance(arrays, Mapping) or not arrays:
         raise CacheError(f"cache entry {key.name!r} must be a non-empty dict of arrays, got {arrays!r:.80}")
     stored = {}
     for name, value in arrays.items():
         if not isinstance(name, str) or not _ARRAY_NAME.match(name) or name in _RESERVED_NAMES or name.startswith("__"):
             raise CacheError(f"invalid array name {name!r} in cache entry {key.name!r}")
-        a = as_numpy(value)
-        if a.dtype.kind not in "biuf":
-            raise CacheError(
-                f"array {name!r} of cache entry {key.name!r} has dtype {a.dtype}; only numeric arrays are stored"
-            )
-        if a.dtype == np.float64 and not key.keep_float64:
-            with np.errstate(over="ignore"):  # overflow to inf is reported just below
-                a = a.astype(np.float32)
-        if a.dtype.kind == "f" and not np.isfinite(a).all():
-            raise NumericalError(
-                f"array {name!r} of {key.name!r} contains NaN/Inf ({int((~np.isfinite(a)).sum())} entries"
-                f"{'' if key.keep_float64 else ', after conversion to float32'}); refusing to cache it"
-            )
-        stored[name] = np.ascontiguousarray(a)
+        if sp.issparse(value):
+            fmt = "csc" if value.format == "csc" else "csr"
+            matrix = _SPARSE_FORMATS[fmt](value)
+            matrix.sum_duplicates()
+            matrix.sort_indices()
+            data = _check_stored(key, name, np.asarray(matrix.data))
+            stored[name] = _SPARSE_FORMATS[fmt]((data, matrix.indices.astype(np.int64), matrix.indptr.astype(np.int64)),
+                                                shape=matrix.shape)
+            continue
+        stored[name] = _check_stored(key, name, as_numpy(value))
     return stored
+
+
+def as_stored(key: CacheKey, arrays: Mapping[str, Any]) -> dict[str, Any]:
+    """``arrays`` exactly as :meth:`ShapeCache.put` would store and return them, without writing (read-only
+    caches return this on a miss, so a first run and a cached run see identical values)."""
+    return _prepare_arrays(key, arrays)
+
+
+def _members(stored: Mapping[str, Any]) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """The ``.npz`` members of prepared values and the formats of the sparse ones."""
+    members, sparse = {}, {}
+    for name, value in stored.items():
+        if sp.issparse(value):
+            sparse[name] = value.format
+            parts = {"data": value.data, "indices": value.indices, "indptr": value.indptr,
+                     "shape": np.asarray(value.shape, dtype=np.int64)}
+            members.update({_sparse_member(name, part): np.ascontiguousarray(a) for part, a in parts.items()})
+        else:
+            members[name] = value
+    return members, sparse
+
+
+def _assemble(arrays: dict[str, np.ndarray], sparse: Mapping[str, str]) -> dict[str, Any]:
+    """Rebuild the sparse values of a read entry from their members."""
+    out = {name: a for name, a in arrays.items() if not name.startswith(_SPARSE_PREFIX)}
+    for name, fmt in sparse.items():
+        if fmt not in _SPARSE_FORMATS:
+            raise _CorruptEntry(f"sparse value {name!r} has unknown format {fmt!r}")
+        parts = {part: arrays.get(_sparse_member(name, part)) for part in _SPARSE_PARTS}
+        if any(a is None for a in parts.values()) or parts["shape"].shape != (2,):
+            raise _CorruptEntry(f"sparse value {name!r} lacks members")
+        shape = tuple(int(s) for s in parts["shape"])
+        major = shape[0] if fmt == "csr" else shape[1]
+        indptr, indices = parts["indptr"], parts["indices"]
+        if (indptr.shape != (major + 1,) or indptr[0] != 0 or indptr[-1] != len(indices) or len(indices) != len(parts["data"])
+                or np.any(np.diff(indptr) < 0)
+                or (len(indices) and (indices.min() < 0 or indices.max() >= shape[1 if fmt == "csr" else 0]))):
+            raise _CorruptEntry(f"sparse value {name!r} is inconsistent")
+        out[name] = _SPARSE_FORMATS[fmt]((parts["data"], indices, indptr), shape=shape)
+    return out
 
 
 def _read_meta(archive: np.lib.npyio.NpzFile) -> dict:
@@ -293,8 +361,8 @@ class ShapeCache:
         """File holding the entry of ``key`` (it may not exist)."""
         return self.root / key.name / key.content_hash / f"{key.digest}.npz"
 
-    def get(self, key: CacheKey) -> dict[str, np.ndarray] | None:
-        """The stored arrays of ``key``, or ``None`` on a miss.
+    def get(self, key: CacheKey) -> dict[str, Any] | None:
+        """The stored arrays (and ``scipy.sparse`` values) of ``key``, or ``None`` on a miss.
 
         A corrupt or stale file counts as a miss and emits a :class:`CacheWarning`; it is left in place
         (a following :meth:`put` overwrites it).
@@ -321,13 +389,14 @@ class ShapeCache:
                     if a.dtype.kind == "f" and not np.isfinite(a).all():
                         raise _CorruptEntry(f"array {name!r} contains NaN/Inf")
                     arrays[name] = a
+                arrays = _assemble(arrays, meta.get("sparse", {}))
         except (_CorruptEntry, *_CORRUPTION_ERRORS) as err:
             warnings.warn(f"{path}: corrupt cache entry ({type(err).__name__}: {err}); recomputing",
                           CacheWarning, stacklevel=2)
             return None
         return arrays
 
-    def put(self, key: CacheKey, arrays: Mapping[str, Any]) -> dict[str, np.ndarray]:
+    def put(self, key: CacheKey, arrays: Mapping[str, Any]) -> dict[str, Any]:
         """Store ``arrays`` under ``key`` atomically and return them as stored (float64 -> float32
         unless ``key.keep_float64``).
 
@@ -341,17 +410,20 @@ class ShapeCache:
         if not self.writable:
             raise CacheError("cache is read-only (writable=False); cannot store entries", self.root)
         stored = _prepare_arrays(key, arrays)
+        members, sparse = _members(stored)
         meta = {
             "format": FORMAT_VERSION,
             "key": key.canonical,
-            "arrays": {name: [a.dtype.str, list(a.shape)] for name, a in stored.items()},
+            "arrays": {name: [a.dtype.str, list(a.shape)] for name, a in members.items()},
         }
+        if sparse:
+            meta["sparse"] = sparse
         meta_bytes = np.frombuffer(json.dumps(meta, sort_keys=True).encode("utf-8"), dtype=np.uint8)
         path = self.path(key)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             with atomic_open(path) as handle:
-                np.savez(handle, allow_pickle=False, **stored, **{_META: meta_bytes})
+                np.savez(handle, allow_pickle=False, **members, **{_META: meta_bytes})
             remove_stale_temp_files(path.parent)
         except OSError as err:
             raise CacheError(f"cannot write cache entry: {err}", path) from err

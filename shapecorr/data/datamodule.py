@@ -17,6 +17,7 @@ from torch.utils.data import DataLoader, Sampler
 
 from shapecorr.data.datasets import PairDataset, PairSample, ShapeDataset
 from shapecorr.data.operators import OperatorConfig
+from shapecorr.data.operators import plain_container as _plain
 from shapecorr.data.shape import Normalization
 from shapecorr.errors import ConfigError
 
@@ -28,18 +29,6 @@ _PAIR_OPTIONS = {"pairs", "include_self", "pair_file", "max_pairs"}
 def _first_item(batch: list[PairSample]) -> PairSample:
     """Collate for batch size 1: the pair itself (no stacking of differently sized meshes)."""
     return batch[0]
-
-
-def _plain(value: Any) -> Any:
-    """OmegaConf containers -> Python containers (no-op on plain values)."""
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-
-        if isinstance(value, (DictConfig, ListConfig)):
-            return OmegaConf.to_container(value, resolve=True)
-    except ImportError:  # pragma: no cover - hydra is a dependency
-        pass
-    return value
 
 
 def _dataclass_from(cls, value):
@@ -113,8 +102,12 @@ class ShapePairDataModule(pl.LightningDataModule):
         ``{index_range: [start, stop]}``, ``{split_file: PATH}`` or ``{names: [...]}``; ``{}`` = all shapes.
     pairs
         Per split the pairing options of :class:`PairDataset`: ``include_self``, ``pair_file``, ``max_pairs``.
-    normalization, operators
-        :class:`Normalization` and :class:`OperatorConfig` fields.
+    normalization
+        :class:`Normalization` fields.
+    operators
+        :class:`~shapecorr.data.operators.OperatorConfig` options: ``laplacian`` (data-wide), ``request``
+        (operators every shape gets), ``params`` (this dataset's parameter defaults per operator), or the flat
+        shorthands ``n_eig``, ``descriptors``, ... ; models add their ``required_operators`` (:meth:`with_operators`).
     cache_dir
         Shape-cache root (default ``$SHAPECORR_CACHE`` or ``~/.cache/shapecorr``).
     num_workers
@@ -154,7 +147,7 @@ class ShapePairDataModule(pl.LightningDataModule):
                 if unknown:
                     raise ConfigError(f"unknown option(s) {sorted(unknown)} for split {split!r}; allowed: {sorted(allowed)}")
         self.normalization = _dataclass_from(Normalization, normalization)
-        self.operators = _dataclass_from(OperatorConfig, operators)
+        self.operators = OperatorConfig.from_options(operators)
         self.cache_dir = cache_dir
         self.num_workers = num_workers
         self.prepare_workers = prepare_workers
@@ -163,16 +156,20 @@ class ShapePairDataModule(pl.LightningDataModule):
         self._shapes: dict[str, ShapeDataset] = {}
         self._pairs: dict[str, PairDataset] = {}
 
-    def with_operators(self, **changes) -> None:
-        """Extend the operator config (e.g. a model needing SHOT and 500 eigenpairs); call before setup."""
-        merged = {f.name: getattr(self.operators, f.name) for f in fields(OperatorConfig)}
-        for key, value in changes.items():
-            if key == "descriptors":
-                value = tuple(dict.fromkeys(tuple(merged["descriptors"]) + tuple(value)))
-            elif key == "n_eig":
-                value = max(merged["n_eig"], int(value))
-            merged[key] = value
-        self.operators = OperatorConfig(**merged)
+    def with_operators(self, request: Mapping[str, Mapping[str, Any]] | None = None, **changes: Any) -> None:
+        """Add an operator request (e.g. a model's ``required_operators``) to the data; call before setup.
+
+        Parameters
+        ----------
+        request
+            ``{operator name: {param: value}}`` (:mod:`shapecorr.data.operators`), merged with the data's own by
+            each operator's merge rule (the eigenbasis keeps the larger ``k``).
+        **changes
+            More requests by name (``with_operators(**model.required_operators)``), the data-wide setting
+            ``laplacian``, or the flat shorthands of earlier versions (``n_eig`` as a lower bound,
+            ``descriptors`` added).
+        """
+        self.operators = self.operators.with_request(request, **changes)
         self._shapes.clear()
         self._pairs.clear()
 

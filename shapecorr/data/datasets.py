@@ -9,8 +9,8 @@ Folder layout (the de-facto layout of FAUST_r / SCAPE_r and of ``data_prep/make_
       splits/<split>.txt     optional: shape names (one per line) of a split, e.g. train.txt / test.txt;
                              without a splits/ folder every shape belongs to every split
 
-:class:`ShapeDataset` yields one :class:`ShapeSample` per shape: the normalized :class:`Shape`, its
-eigenbasis, the configured descriptors and ground truth. :class:`PairDataset` yields ordered pairs.
+:class:`ShapeDataset` yields one :class:`ShapeSample` per shape: the normalized :class:`Shape`, the per-shape
+operators requested (``sample.operators[name]``, :mod:`shapecorr.data.operators`) and ground truth. :class:`PairDataset` yields ordered pairs.
 Derived quantities come from the on-disk :class:`~shapecorr.data.cache.ShapeCache`; missing entries are
 computed by :meth:`ShapeDataset.prepare` (in parallel worker processes, with a progress bar) — the data
 module calls it before training starts, and ``data_prep/prepare.py`` calls it ahead of time.
@@ -23,21 +23,28 @@ import json
 import logging
 import os
 import re
+from collections.abc import Iterable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Any
 
 import numpy as np
+import scipy.sparse as sp
 import torch
 from torch.utils.data import Dataset
 from tqdm.auto import tqdm
 
 from shapecorr.data.cache import CacheKey, ShapeCache, default_cache_root
 from shapecorr.data.io import check_vts_lengths, load_shape, read_vts
-from shapecorr.data.operators import OperatorConfig, compute_operators, geodesics_cached
+from shapecorr.data.operators import (
+    REGISTRY,
+    OperatorConfig,
+    compute_operators,
+    geodesics_cached,
+)
 from shapecorr.data.shape import Normalization, Shape
-from shapecorr.errors import DatasetError
+from shapecorr.errors import ConfigError, DatasetError
 
 MESH_DIRS = ("off", "shapes")
 MESH_EXTENSIONS = (".off", ".ply", ".obj")
@@ -51,35 +58,70 @@ log = logging.getLogger(__name__)
 _ROOTS_WITHOUT_SPLITS: set[str] = set()
 
 
-@dataclass(frozen=True, eq=False)
+def _tensor(value) -> torch.Tensor:
+    """A cached array as a tensor: floats float32, integers int64, ``scipy.sparse`` as a coalesced sparse COO
+    float32 tensor; tensors pass through."""
+    if isinstance(value, torch.Tensor):
+        return value
+    if sp.issparse(value):
+        coo = sp.coo_array(value)
+        indices = torch.from_numpy(np.vstack([coo.row, coo.col]).astype(np.int64))
+        values = torch.from_numpy(np.ascontiguousarray(coo.data, dtype=np.float32))
+        return torch.sparse_coo_tensor(indices, values, coo.shape, check_invariants=True).coalesce()
+    a = np.asarray(value)
+    dtype = np.float32 if a.dtype.kind == "f" else np.int64 if a.dtype.kind in "iu" else a.dtype
+    return torch.from_numpy(np.ascontiguousarray(a, dtype=dtype))
+
+
+@dataclass(frozen=True, eq=False, init=False)
 class ShapeSample:
-    """One shape with everything a model or the evaluation needs.
+    """One shape with the per-shape operators a model declared and its ground truth.
 
     Attributes
     ----------
     shape : Shape
         Normalized mesh (``verts (n, 3)`` float32, ``faces (f, 3)`` int64).
-    evals : (k,) float32
-        Laplace–Beltrami eigenvalues, ascending (standard ½-cot scale).
-    evecs : (n, k) float32
-        Mass-orthonormal eigenfunctions.
-    mass : (n,) float32
-        Lumped vertex areas.
-    features : dict[str, (n, c) float32]
-        Descriptors by name (``"shot"``, ``"wks"``, ``"hks"``), as configured.
+    operators : dict[str, dict[str, Tensor]]
+        Per operator name (:mod:`shapecorr.data.operators`) its tensors, e.g. ``operators["eigenbasis"] =
+        {"evals": (k,), "evecs": (n, k), "mass": (n,)}``, ``operators["shot"] = {"shot": (n, 352)}``; floats are
+        float32, sparse operators sparse COO tensors.
     corres : (R,) int64 or None
         Zero-based vertex indices of the R reference points (``corres/<name>.vts``).
     corres_sym : (R,) int64 or None
         The same for the mirrored ground truth (``corres/<name>.sym.vts``).
+
+    Convenience views: ``evals (k,)``, ``evecs (n, k)``, ``mass (n,)`` (the eigenbasis operator; standard ½-cot
+    eigenvalue scale, mass-orthonormal eigenfunctions, lumped vertex areas) and ``features[name] (n, c)`` (the
+    descriptor operators: shot, wks, hks). The constructor also takes those (``ShapeSample(shape, evals, evecs,
+    mass, features=...)``), as before the operator registry.
     """
 
     shape: Shape
-    evals: torch.Tensor
-    evecs: torch.Tensor
-    mass: torch.Tensor
-    features: dict[str, torch.Tensor] = field(default_factory=dict)
-    corres: torch.Tensor | None = None
-    corres_sym: torch.Tensor | None = None
+    operators: Mapping[str, Mapping[str, torch.Tensor]]
+    corres: torch.Tensor | None
+    corres_sym: torch.Tensor | None
+
+    def __init__(
+        self,
+        shape: Shape,
+        evals: torch.Tensor | None = None,
+        evecs: torch.Tensor | None = None,
+        mass: torch.Tensor | None = None,
+        features: Mapping[str, torch.Tensor] | None = None,
+        corres: torch.Tensor | None = None,
+        corres_sym: torch.Tensor | None = None,
+        operators: Mapping[str, Mapping[str, Any]] | None = None,
+    ):
+        ops = {name: {k: _tensor(v) for k, v in arrays.items()} for name, arrays in (operators or {}).items()}
+        eig = {k: v for k, v in (("evals", evals), ("evecs", evecs), ("mass", mass)) if v is not None}
+        if eig:
+            ops["eigenbasis"] = {**ops.get("eigenbasis", {}), **{k: _tensor(v) for k, v in eig.items()}}
+        for name, value in (features or {}).items():
+            ops[name] = {name: _tensor(value)}
+        object.__setattr__(self, "shape", shape)
+        object.__setattr__(self, "operators", ops)
+        object.__setattr__(self, "corres", corres)
+        object.__setattr__(self, "corres_sym", corres_sym)
 
     @property
     def name(self) -> str:
@@ -93,22 +135,51 @@ class ShapeSample:
     def faces(self) -> torch.Tensor:
         return self.shape.faces
 
-    def to(self, device: torch.device | str) -> "ShapeSample":
+    def _eigen(self, part: str) -> torch.Tensor:
+        eig = self.operators.get("eigenbasis", {})
+        if part not in eig:
+            raise ConfigError(f"{self.name}: the sample carries no eigenbasis ({part}); the model or matcher must "
+                              "declare it in required_operators, e.g. {'eigenbasis': {'k': 200}}")
+        return eig[part]
+
+    @property
+    def evals(self) -> torch.Tensor:
+        """``(k,)`` Laplace–Beltrami eigenvalues, ascending (``operators["eigenbasis"]["evals"]``)."""
+        return self._eigen("evals")
+
+    @property
+    def evecs(self) -> torch.Tensor:
+        """``(n, k)`` mass-orthonormal eigenfunctions (``operators["eigenbasis"]["evecs"]``)."""
+        return self._eigen("evecs")
+
+    @property
+    def mass(self) -> torch.Tensor:
+        """``(n,)`` lumped vertex areas (``operators["eigenbasis"]["mass"]``)."""
+        return self._eigen("mass")
+
+    @property
+    def features(self) -> dict[str, torch.Tensor]:
+        """Per-vertex descriptors ``(n, c)`` by name: every operator ``name`` with an array ``name`` that is not
+        registered as a non-descriptor (e.g. ``geodesics``)."""
+        out = {}
+        for name, arrays in self.operators.items():
+            op = REGISTRY.get(name)
+            if name in arrays and (op is None or op.feature):
+                out[name] = arrays[name]
+        return out
+
+    def to(self, device: torch.device | str) -> ShapeSample:
         """Copy with every tensor on ``device``."""
-        move = lambda t: None if t is None else t.to(device)  # noqa: E731
-        return replace(
-            self,
+        move = lambda t: None if t is None else t.to(device)
+        return ShapeSample(
             shape=self.shape.to(device),
-            evals=move(self.evals),
-            evecs=move(self.evecs),
-            mass=move(self.mass),
-            features={k: v.to(device) for k, v in self.features.items()},
+            operators={name: {k: v.to(device) for k, v in arrays.items()} for name, arrays in self.operators.items()},
             corres=move(self.corres),
             corres_sym=move(self.corres_sym),
         )
 
     def __repr__(self) -> str:
-        return f"ShapeSample({self.name!r}, n={self.shape.n_verts}, k={self.evals.shape[0]}, features={list(self.features)})"
+        return f"ShapeSample({self.name!r}, n={self.shape.n_verts}, operators={list(self.operators)})"
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,7 +193,7 @@ class PairSample:
     def name(self) -> str:
         return pair_name(self.x.name, self.y.name)
 
-    def to(self, device: torch.device | str) -> "PairSample":
+    def to(self, device: torch.device | str) -> PairSample:
         return PairSample(self.x.to(device), self.y.to(device))
 
 
@@ -243,27 +314,19 @@ def load_mesh_cached(cache: ShapeCache, path: Path, normalization: Normalization
 def sample_with_operators(
     shape: Shape, operators: OperatorConfig, cache: ShapeCache, corres=None, corres_sym=None
 ) -> ShapeSample:
-    """``shape`` with its eigenbasis and descriptors (from ``cache``, computed on a miss) as a :class:`ShapeSample`.
+    """``shape`` with the operators of ``operators`` (from ``cache``, computed on a miss) as a :class:`ShapeSample`.
 
     Parameters
     ----------
     shape : Shape
     operators : OperatorConfig
+        What to provide (the data config's operators merged with the model's ``required_operators``).
     cache : ShapeCache
     corres, corres_sym : (n_ref,) int64 tensor, optional
         Ground-truth reference indices (and their symmetric flip), when known.
     """
     ops = compute_operators(cache, shape.verts.numpy(), shape.faces.numpy(), operators)
-    as_t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
-    return ShapeSample(
-        shape=shape,
-        evals=as_t(ops["evals"]),
-        evecs=as_t(ops["evecs"]),
-        mass=as_t(ops["mass"]),
-        features={k: as_t(ops[k]) for k in operators.descriptors},
-        corres=corres,
-        corres_sym=corres_sym,
-    )
+    return ShapeSample(shape=shape, operators=ops, corres=corres, corres_sym=corres_sym)
 
 
 def _prepare_one(args) -> str:
@@ -290,7 +353,8 @@ class ShapeDataset(Dataset):
     normalization
         Applied on load (default: area-weighted centroid at the origin, sqrt(area) = 2/3).
     operators
-        Eigenbasis size and descriptors to provide.
+        The per-shape operators to provide (:class:`~shapecorr.data.operators.OperatorConfig`; a mapping is read
+        with :meth:`~shapecorr.data.operators.OperatorConfig.from_options`).
     cache_dir
         Root of the shape cache (default ``$SHAPECORR_CACHE`` or ``~/.cache/shapecorr``).
     require_corres
@@ -316,7 +380,7 @@ class ShapeDataset(Dataset):
         self._folder_names = set(files)
         self.paths = [files[n] for n in self.names]
         self.normalization = normalization
-        self.operators = operators
+        self.operators = OperatorConfig.from_options(operators)
         self.cache = ShapeCache(default_cache_root() if cache_dir is None else cache_dir)
         self._index = {n: i for i, n in enumerate(self.names)}
         self._loaded: dict[int, Shape] = {}  # meshes are small next to their operators: keep them all
@@ -377,7 +441,7 @@ class ShapeDataset(Dataset):
         return geodesics_cached(self.cache, shape.verts.numpy(), shape.faces.numpy(), method=method)
 
     def prepare(self, num_workers: int | None = None, geodesics: str | None = None, progress: bool = True) -> None:
-        """Compute every missing cache entry (eigenbasis, descriptors, optionally geodesics).
+        """Compute every missing cache entry (the operators of ``self.operators``, optionally geodesics).
 
         Runs in ``num_workers`` processes (default: the CPU count, at most the number of shapes) with a
         progress bar; entries already cached are only read. Safe to interrupt: each entry is written atomically.

@@ -73,8 +73,8 @@ class DescriptorNN:
     Parameters
     ----------
     descriptor : {"wks", "hks", "shot"}
-        Which entry of ``ShapeSample.features`` to match; the data pipeline computes it
-        (``required_operators`` asks ``evaluate.py`` for it).
+        Which descriptor operator to match (``ShapeSample.features[descriptor]``); ``required_operators``
+        (``{descriptor: {}}``) asks ``evaluate.py`` for it; its parameters come from ``data.operators.params``.
     normalize : {"none", "l2", "standardize"}
         Row transform before the search: none; unit L2 norm per vertex; or per-channel zero mean and unit
         variance using the statistics of both shapes together. On the FAUST_r test pairs with WKS the three
@@ -96,13 +96,14 @@ class DescriptorNN:
         self.descriptor = descriptor
         self.normalize = normalize
         self.chunk_rows = int(chunk_rows)
-        self.required_operators = {"descriptors": [descriptor]}
+        self.required_operators = {descriptor: {}}
 
     def _features(self, sample) -> torch.Tensor:
         feats = sample.features.get(self.descriptor)
         if feats is None:
             raise ConfigError(
-                f"shape {sample.name!r} has no {self.descriptor!r} descriptor; add it to data.operators.descriptors"
+                f"shape {sample.name!r} has no {self.descriptor!r} descriptor (the data did not compute the "
+                f"operator; required_operators = {self.required_operators})"
             )
         if feats.ndim != 2 or feats.shape[0] != sample.shape.n_verts:
             raise ConfigError(
@@ -220,6 +221,7 @@ class LinearBlend(torch.nn.Module):
 
     @property
     def required_operators(self) -> dict:
+        """The wrapped matcher's operator request."""
         return dict(getattr(self.matcher, "required_operators", {}) or {})
 
     @property

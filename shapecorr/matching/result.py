@@ -9,8 +9,10 @@ with the module in eval mode). The map goes **from x to y**: ``p2p[i]`` is the v
 vertex i of x. Two optional attributes let ``evaluate.py`` prepare the data a matcher needs:
 
 ``required_operators``
-    A dict of :class:`~shapecorr.data.operators.OperatorConfig` changes (e.g. ``{"descriptors": ["wks"]}``
-    or ``{"n_eig": 500}``) passed to ``ShapePairDataModule.with_operators`` before the data is loaded.
+    An operator request ``{operator name: {param: value}}`` (:mod:`shapecorr.data.operators`; ``{}`` takes an
+    operator's defaults), e.g. ``{"wks": {}}`` or ``{"eigenbasis": {"k": 500}, "shot": {}}``, merged into the
+    data's operators (``ShapePairDataModule.with_operators``) before the data is loaded; the samples then carry
+    ``sample.operators[name]``.
 ``needs_ground_truth``
     True for the self-check matcher that reads the ground truth (``IdentityGT``); such matchers are never
     reported as a method.

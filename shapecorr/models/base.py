@@ -9,8 +9,12 @@ A concrete model implements ``training_step`` (features -> matching -> loss -> `
   fitting ``val/pairs_seen`` (training pairs seen so far: the x-axis of learning curves);
 - at the end of a validation epoch a PCK-curve figure and the colored correspondence of the first validation
   pair (TensorBoard meshes + a headless render), when the logger is TensorBoard;
-- ``required_operators``: the per-shape data the model needs (eigenpairs, descriptors), merged into the data
-  module's operator config by ``train.py`` / ``evaluate.py``.
+- ``required_operators``: the per-shape operators the model needs, an operator request
+  ``{name: {param: value}}`` (:mod:`shapecorr.data.operators`), merged into the data module's operators by
+  ``train.py`` / ``evaluate.py``;
+- optimizer / LR-scheduler factories (``model.optimizer`` / ``model.scheduler`` ``_partial_: true`` nodes):
+  :func:`build_optimizers`, :func:`adam`, and :func:`as_factory` / :func:`factory_node` to keep them as plain
+  nodes in checkpoints.
 
 Geodesic matrices come from the data module's shape cache; a small in-memory LRU keeps the few shapes of the
 validation set.
@@ -21,14 +25,14 @@ from __future__ import annotations
 import functools
 import time
 from collections import OrderedDict
-from typing import Any, Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
 
 import numpy as np
 import pytorch_lightning as pl
 import torch
 
 from shapecorr.errors import ConfigError
-
 from shapecorr.eval import metrics
 from shapecorr.eval.protocol import score_map
 from shapecorr.matching.result import MatchResult
@@ -49,6 +53,37 @@ def adam(lr: float) -> OptimizerFactory:
     if not lr > 0:
         raise ConfigError(f"optimizer: lr must be positive, got {lr}")
     return functools.partial(torch.optim.Adam, lr=float(lr))
+
+
+def as_factory(value: Any, what: str = "optimizer") -> Callable | None:
+    """An optimizer/scheduler factory from a ``_partial_: true`` node (a mapping, e.g. from a checkpoint's
+    hyperparameters), an already built factory (passed through) or None."""
+    if value is None or callable(value):
+        return value
+    from omegaconf import DictConfig
+
+    if isinstance(value, (Mapping, DictConfig)) and "_target_" in value:
+        import hydra
+
+        try:
+            factory = hydra.utils.instantiate(value, _partial_=True)
+        except hydra.errors.InstantiationException as err:
+            raise ConfigError(f"model.{what}: cannot build {dict(value)!r}: {err}") from None
+        return factory
+    raise ConfigError(f"model.{what} must be a _partial_: true node with a _target_ or a factory, got {value!r}")
+
+
+def factory_node(factory: Callable | None) -> dict | None:
+    """The ``_partial_: true`` node of a factory built by :func:`as_factory` / Hydra (``functools.partial`` of
+    an importable callable with keyword arguments), for checkpoints' hyperparameters; None for None or a factory
+    that has no such form (a checkpoint then needs the factory passed to ``load_from_checkpoint``)."""
+    if not isinstance(factory, functools.partial) or factory.args:
+        return None
+    func = factory.func
+    module, name = getattr(func, "__module__", None), getattr(func, "__qualname__", "")
+    if module is None or "<" in name:
+        return None
+    return {"_target_": f"{module}.{name}", "_partial_": True, **factory.keywords}
 
 
 def build_optimizers(
@@ -85,7 +120,7 @@ def build_optimizers(
 class CorrespondenceModule(pl.LightningModule):
     """Base class of the learned models; see the module docstring."""
 
-    #: OperatorConfig changes the model needs from the data (overridden by subclasses).
+    #: Operator request ``{name: {param: value}}`` the model needs from the data (overridden by subclasses).
     required_operators: dict = {}
 
     def __init__(self):

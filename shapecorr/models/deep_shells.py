@@ -1,10 +1,13 @@
-"""Deep Shells as a LightningModule: spectral filter bank on SHOT -> hierarchical OT layer -> mean level energy.
+"""Deep Shells as a LightningModule: a backbone (spectral filter bank on SHOT) -> hierarchical OT layer -> mean
+level energy.
 
-Eisenberger, Toker, Leal-Taixé, Cremers, NeurIPS 2020 (docs/deep_shells.md). The module is thin: the learned
-features come from :class:`~shapecorr.nn.spectral_conv.SpectralFilterBank` (or, for the "no learning"
-ablation ``backbone="identity"``, the raw descriptor), the matching and the loss from
+Eisenberger, Toker, Leal-Taixé, Cremers, NeurIPS 2020 (docs/deep_shells.md). The module is thin: the features come
+from the injected backbone (:mod:`shapecorr.nn.backbone`; ``configs/model/backbone/``: ``spectral_conv`` =
+:class:`~shapecorr.nn.spectral_conv.SpectralBackbone`, the published network; ``identity`` =
+:class:`~shapecorr.nn.identity.IdentityBackbone`, the "no learning" ablation), the matching and the loss from
 :func:`~shapecorr.matching.deep_shells.deep_shells_layer`, test-time maps from
-:func:`~shapecorr.matching.deep_shells.deep_shells_query`.
+:func:`~shapecorr.matching.deep_shells.deep_shells_query`; the optimizer (and optional LR scheduler) are
+``_partial_`` nodes (``configs/model/optimizer/adam.yaml``: Adam 1e-4, published).
 
 Training step, for one pair: ``num_samples`` vertices per shape drawn uniformly with replacement (published:
 2000), features evaluated at those rows only, the OT layer over the shell schedule ``layer.k_array``, loss =
@@ -12,12 +15,19 @@ Training step, for one pair: ``num_samples`` vertices per shape drawn uniformly 
 run resumed from a checkpoint draws exactly the samples the uninterrupted run would have drawn (the global
 step is not used: with gradient accumulation many batches share one).
 
-Published weights: ``pretrained=PATH`` initializes the filter bank from the original's released checkpoint
+Published weights: ``pretrained=PATH`` initializes the spectral backbone from the original's released checkpoint
 (``ckpt_*.pth``, :func:`~shapecorr.nn.spectral_conv.load_original_deep_shells_weights`) or from one of our
 Lightning checkpoints (``.ckpt``: its ``backbone.*`` weights); ``configs/model/deep_shells_published.yaml`` takes the
 path from ``$SHAPECORR_DEEP_SHELLS_WEIGHTS`` so that ``evaluate.py model=deep_shells_published`` needs no checkpoint.
 The path is not a hyperparameter of the checkpoints this module writes (they hold the weights themselves, and a
 checkpoint must load after the file has moved); it is recorded under :data:`PRETRAINED_CHECKPOINT_KEY`.
+
+Checkpoints record the backbone and the optimizer as ``_target_`` nodes (hyperparameters ``backbone``,
+``optimizer``, ``scheduler``), so ``load_from_checkpoint(path)`` rebuilds them. Checkpoints written before the
+backbone was injected carry ``backbone: spectral|identity``, the flattened filter-bank keys (``descriptor``,
+``in_channels``, ``out_channels``, ``hidden_channels``, ``num_basis``, ``num_eigs``, ``max_frequency``,
+``activation``) and ``lr``: the constructor still accepts them (:data:`LEGACY_OPTIONS`), maps them to the
+backbone / optimizer nodes and warns (FutureWarning).
 
 ``match``: features at full resolution, the coarse OT level and the axiomatic refinement (``layer.refine_*``,
 published 40 levels from 6 to 499). During training, validation uses a cheaper refinement with
@@ -28,14 +38,18 @@ full schedule (``refine=False`` disables it everywhere).
 
 from __future__ import annotations
 
-from dataclasses import replace
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, replace
 from os import PathLike
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 
+from shapecorr.data.operators import merge_requests
 from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.matching.deep_shells import (
     DeepShellsConfig,
@@ -46,28 +60,35 @@ from shapecorr.matching.deep_shells import (
     shell_size,
 )
 from shapecorr.matching.result import MatchResult
-from shapecorr.models.base import CorrespondenceModule
+from shapecorr.models.base import (
+    CorrespondenceModule,
+    adam,
+    as_factory,
+    build_optimizers,
+    factory_node,
+)
+from shapecorr.nn.backbone import backbone_node
+from shapecorr.nn.identity import IdentityBackbone
 from shapecorr.nn.spectral_conv import (
-    DEFAULT_IN_CHANNELS,
-    DEFAULT_MAX_FREQUENCY,
-    DEFAULT_NUM_BASIS,
-    DEFAULT_NUM_EIGS,
-    DEFAULT_OUT_CHANNELS,
+    SpectralBackbone,
     SpectralFilterBank,
     load_original_deep_shells_weights,
 )
 
-#: Deep Shells optimizer: Adam with learning rate 1e-4 (docs/deep_shells.md §10, train.py of the original).
+#: Deep Shells optimizer: Adam with learning rate 1e-4 (Eisenberger et al. 2020, §5; the authors' train.py).
 DEFAULT_LR = 1e-4
-#: Input descriptor of the published network (SHOT, 352 channels).
-DEFAULT_DESCRIPTOR = "shot"
-BACKBONES = ("spectral", "identity")
 #: Key of our Lightning checkpoints whose ``backbone.*`` entries ``pretrained`` loads.
 LIGHTNING_STATE_KEY = "state_dict"
 #: Prefix of the filter-bank parameters in a DeepShells state dict.
 BACKBONE_PREFIX = "backbone."
 #: Extra checkpoint entry recording the file the weights were initialized from (provenance only).
 PRETRAINED_CHECKPOINT_KEY = "deep_shells_pretrained"
+#: Options of checkpoints written before the backbone and optimizer were injected (mapped with a warning).
+LEGACY_BACKBONE_OPTIONS = ("descriptor", "in_channels", "out_channels", "hidden_channels", "num_basis", "num_eigs",
+                           "max_frequency", "activation")
+LEGACY_OPTIONS = (*LEGACY_BACKBONE_OPTIONS, "lr")
+#: Values of the legacy string option ``backbone``.
+LEGACY_BACKBONES = ("spectral", "identity")
 
 
 def _as_config(layer: Mapping[str, Any] | DeepShellsConfig | None, num_samples: int) -> DeepShellsConfig:
@@ -82,22 +103,50 @@ def _as_config(layer: Mapping[str, Any] | DeepShellsConfig | None, num_samples: 
         raise ConfigError(f"deep_shells: invalid layer option: {err}") from None
 
 
+def _legacy_backbone(backbone: Any, legacy: dict) -> nn.Module:
+    """The backbone described by the options of a checkpoint written before backbones were injected."""
+    name = "spectral" if backbone is None else backbone
+    if name not in LEGACY_BACKBONES:
+        raise ConfigError(f"deep_shells: backbone must be a module or a _target_ node (configs/model/backbone/), "
+                          f"or one of the legacy names {LEGACY_BACKBONES}; got {backbone!r}")
+    options = {k: legacy[k] for k in LEGACY_BACKBONE_OPTIONS if k in legacy}
+    if name == "identity":  # the descriptor went through unchanged: its length was in_channels
+        return IdentityBackbone(options.get("descriptor", "shot"), out_channels=options.get("in_channels", 352))
+    return SpectralBackbone(**options)
+
+
+def _instantiate_backbone(node: Any) -> nn.Module:
+    import hydra
+    from omegaconf import DictConfig
+
+    if not isinstance(node, (Mapping, DictConfig)) or "_target_" not in node:
+        raise ConfigError(f"deep_shells: backbone must be a torch module or a _target_ node, got {node!r}")
+    try:
+        return hydra.utils.instantiate(node, _convert_="object")
+    except hydra.errors.InstantiationException as err:
+        cause = err.__cause__
+        if isinstance(cause, ConfigError):
+            raise cause from None
+        raise ConfigError(f"deep_shells: cannot build the backbone {dict(node)!r}: {err}") from None
+
+
 class DeepShells(CorrespondenceModule):
-    """Deep Shells: learned spectral features + differentiable smooth-shells OT (see the module docstring).
+    """Deep Shells: backbone features + differentiable smooth-shells OT (see the module docstring).
 
     Parameters
     ----------
-    backbone : {"spectral", "identity"}
-        ``spectral``: the published single-layer :class:`SpectralFilterBank`; ``identity``: the descriptor
-        goes straight into the OT layer (no parameters: the "no learning" ablation, evaluable without training).
-    descriptor : str
-        Per-vertex input descriptor from the data pipeline (published: ``shot``).
-    in_channels, out_channels, hidden_channels, num_basis, num_eigs, max_frequency, activation
-        :class:`SpectralFilterBank` options (published: 352 -> 120, 16 cosines, 200 eigenpairs, no hidden layer).
+    backbone : nn.Module or mapping, optional
+        The feature extractor (a :class:`~shapecorr.nn.backbone.Backbone`: ``forward(sample, rows)``,
+        ``required_operators``), or its ``_target_`` node (instantiated here; checkpoints store it so). Default:
+        the published :class:`~shapecorr.nn.spectral_conv.SpectralBackbone`.
     num_samples : int
         Vertices drawn per shape and training step (published 2000, with replacement).
-    lr : float
-        Adam learning rate (published 1e-4).
+    optimizer : callable or mapping, optional
+        Optimizer factory (``model.optimizer``, a ``_partial_: true`` node); default Adam 1e-4 (published).
+    scheduler : callable or mapping, optional
+        LR-scheduler factory (``model.scheduler``); default none (published: constant rate).
+    scheduler_interval : {"epoch", "step"}
+        When the scheduler steps.
     layer : mapping
         :class:`~shapecorr.matching.deep_shells.DeepShellsConfig` fields (shell schedule, Sinkhorn, refinement).
     level_weights : sequence of float, optional
@@ -109,50 +158,80 @@ class DeepShells(CorrespondenceModule):
     seed : int
         Base seed of the per-step vertex sampling.
     pretrained : path-like, optional
-        Initial filter-bank weights: the original's released ``.pth`` or one of our ``.ckpt`` files (see the module
-        docstring); needs ``backbone="spectral"`` with matching sizes.
+        Initial backbone weights: the original's released ``.pth`` or one of our ``.ckpt`` files (see the module
+        docstring); needs the spectral backbone with matching sizes.
+    **legacy
+        Options of old checkpoints (:data:`LEGACY_OPTIONS`), mapped with a FutureWarning.
     """
 
     def __init__(
         self,
-        backbone: str = "spectral",
-        descriptor: str = DEFAULT_DESCRIPTOR,
-        in_channels: int = DEFAULT_IN_CHANNELS,
-        out_channels: int = DEFAULT_OUT_CHANNELS,
-        hidden_channels: Sequence[int] = (),
-        num_basis: int = DEFAULT_NUM_BASIS,
-        num_eigs: int = DEFAULT_NUM_EIGS,
-        max_frequency: float = DEFAULT_MAX_FREQUENCY,
-        activation: str = "relu",
+        backbone: nn.Module | Mapping[str, Any] | str | None = None,
         num_samples: int = DeepShellsConfig.num_samples,
-        lr: float = DEFAULT_LR,
+        optimizer: Any = None,
+        scheduler: Any = None,
+        scheduler_interval: str = "epoch",
         layer: Mapping[str, Any] | None = None,
         level_weights: Sequence[float] | None = None,
         refine: bool = True,
         val_refine_levels: int | None = None,
         seed: int = 0,
         pretrained: str | PathLike | None = None,
+        **legacy: Any,
     ):
         super().__init__()
-        # the weights themselves are in our checkpoints; the file they came from need not exist when one is loaded
-        self.save_hyperparameters(ignore=["pretrained"])
-        if backbone not in BACKBONES:
-            raise ConfigError(f"deep_shells: backbone must be one of {BACKBONES}, got {backbone!r}")
-        if not lr > 0:
-            raise ConfigError(f"deep_shells: lr must be positive, got {lr}")
+        unknown = sorted(set(legacy) - set(LEGACY_OPTIONS))
+        if unknown:
+            raise ConfigError(f"deep_shells: unknown option(s) {unknown}")
+        if isinstance(backbone, str) or set(legacy) & set(LEGACY_BACKBONE_OPTIONS):
+            if backbone is not None and not isinstance(backbone, str):
+                raise ConfigError(f"deep_shells: the filter-bank options {sorted(set(legacy) - {'lr'})} belong to "
+                                  "the backbone node (model.backbone.*), not to the model")
+            mapped = sorted((set(legacy) - {"lr"}) | ({"backbone"} if backbone else set()))
+            warnings.warn(f"deep_shells: options {mapped} of "
+                          "an old checkpoint/config are mapped to model.backbone (configs/model/backbone/); write "
+                          "model/backbone=spectral_conv|identity and model.backbone.<option> instead",
+                          FutureWarning, stacklevel=2)
+            backbone = _legacy_backbone(backbone, legacy)
+        if "lr" in legacy:
+            if optimizer is not None:
+                raise ConfigError("deep_shells: give the learning rate as model.optimizer.lr, not both lr and optimizer")
+            warnings.warn("deep_shells: option 'lr' (old checkpoint/config) is mapped to model.optimizer.lr",
+                          FutureWarning, stacklevel=2)
+            optimizer = adam(float(legacy["lr"]))
+        if backbone is None:
+            backbone = SpectralBackbone()
+        elif not isinstance(backbone, nn.Module):
+            backbone = _instantiate_backbone(backbone)
+        if not isinstance(backbone, nn.Module):
+            raise ConfigError(f"deep_shells: backbone must be a torch module, got {type(backbone).__name__}")
+        self.optimizer = adam(DEFAULT_LR) if optimizer is None else as_factory(optimizer)
+        self.scheduler = as_factory(scheduler, "scheduler")
+        if self.lr is not None and not self.lr > 0:
+            raise ConfigError(f"deep_shells: model.optimizer.lr must be positive, got {self.lr}")
+        if scheduler_interval not in ("epoch", "step"):
+            raise ConfigError(f"deep_shells: scheduler_interval must be 'epoch' or 'step', got {scheduler_interval!r}")
+        self.scheduler_interval = scheduler_interval
         if val_refine_levels is not None and int(val_refine_levels) < 0:
             raise ConfigError(f"deep_shells: val_refine_levels must be >= 0 or null, got {val_refine_levels}")
-        self.backbone_name = backbone
-        self.descriptor = str(descriptor)
-        self.lr = float(lr)
         self.refine = bool(refine)
         self.val_refine_levels = None if val_refine_levels is None else int(val_refine_levels)
         self.seed = int(seed)
         self.config = _as_config(layer, num_samples)
-        self.backbone = None
-        if backbone == "spectral":
-            self.backbone = SpectralFilterBank(in_channels, out_channels, tuple(hidden_channels), num_basis,
-                                               num_eigs, max_frequency, activation)
+        self.backbone = backbone
+        # plain nodes only, so that checkpoints rebuild the model without this config (load_from_checkpoint(path))
+        self.save_hyperparameters({
+            "backbone": backbone_node(backbone),
+            "num_samples": int(num_samples),
+            "optimizer": factory_node(self.optimizer),
+            "scheduler": factory_node(self.scheduler),
+            "scheduler_interval": scheduler_interval,
+            "layer": asdict(layer) if isinstance(layer, DeepShellsConfig) else layer,
+            "level_weights": None if level_weights is None else [float(w) for w in level_weights],
+            "refine": self.refine,
+            "val_refine_levels": self.val_refine_levels,
+            "seed": self.seed,
+        })
         n_levels = len(self.config.k_array)
         if level_weights is None:
             weights = torch.full((n_levels,), 1.0 / n_levels)
@@ -167,6 +246,12 @@ class DeepShells(CorrespondenceModule):
         self.pretrained = None
         if pretrained is not None:
             self.load_pretrained(pretrained)
+
+    @property
+    def lr(self) -> float | None:
+        """Learning rate of the optimizer factory (None if it has none)."""
+        keywords = getattr(self.optimizer, "keywords", {}) or {}
+        return None if "lr" not in keywords else float(keywords["lr"])
 
     # -- published / earlier weights --------------------------------------------------------------------------
     def load_pretrained(self, path: str | PathLike) -> None:
@@ -184,9 +269,9 @@ class DeepShells(CorrespondenceModule):
             fit (the message names the file).
         """
         path = Path(path).expanduser()
-        if self.backbone is None:
-            raise ConfigError(f"deep_shells: pretrained weights need backbone=spectral, got {self.backbone_name!r}",
-                              path=path)
+        if not isinstance(self.backbone, SpectralFilterBank):
+            raise ConfigError(f"deep_shells: pretrained weights need the spectral_conv backbone (model/backbone="
+                              f"spectral_conv), got {type(self.backbone).__name__}", path=path)
         if not path.is_file():
             raise ConfigError("deep_shells: pretrained weights file not found (model.pretrained; for "
                               "model=deep_shells_published set SHAPECORR_DEEP_SHELLS_WEIGHTS)", path=path)
@@ -207,7 +292,7 @@ class DeepShells(CorrespondenceModule):
         backbone = {k[len(BACKBONE_PREFIX):]: v for k, v in state.items() if k.startswith(BACKBONE_PREFIX)}
         if not backbone:
             raise ConfigError("deep_shells: the checkpoint holds no filter-bank weights (no 'backbone.*' entries; "
-                              "trained with backbone=identity?)", path=path)
+                              "trained with model/backbone=identity?)", path=path)
         try:
             self.backbone.load_state_dict(backbone, strict=True)
         except RuntimeError as exc:  # missing/unexpected keys or shape mismatches, listed by torch
@@ -221,30 +306,22 @@ class DeepShells(CorrespondenceModule):
     # -- data requirements ------------------------------------------------------------------------------------
     @property
     def required_operators(self) -> dict:  # type: ignore[override]
-        """Descriptor and eigenpairs the data must provide: the filter bank's ``num_eigs`` and the shells'."""
+        """The backbone's operators merged with the eigenpairs the shells need (training and refinement levels)."""
         cfg = self.config
         ks = list(cfg.k_array) + (list(cfg.refine_k_array) if self.refine else [])
         need = max(max(shell_size(k, cfg.smooth_x, cfg.sigmoid_inclusive),
                        shell_size(k, "sigmoid", cfg.sigmoid_inclusive)) for k in ks)
-        if self.backbone is not None:
-            need = max(need, self.backbone.num_eigs)
-        return {"descriptors": [self.descriptor], "n_eig": int(need)}
+        return merge_requests(getattr(self.backbone, "required_operators", {}), {"eigenbasis": {"k": int(need)}})
 
     # -- building blocks --------------------------------------------------------------------------------------
     def features(self, sample, rows: torch.Tensor | None = None) -> torch.Tensor:
-        """Per-vertex features of a :class:`~shapecorr.data.datasets.ShapeSample`.
+        """Per-vertex features of a :class:`~shapecorr.data.datasets.ShapeSample` (the backbone's).
 
         Returns
         -------
         (n, c) or (len(rows), c) float
         """
-        if self.descriptor not in sample.features:
-            raise ConfigError(f"{sample.name}: deep_shells needs the {self.descriptor!r} descriptor, the data "
-                              f"provides {sorted(sample.features)}; add it to data.operators.descriptors")
-        desc = sample.features[self.descriptor]
-        if self.backbone is None:
-            return desc if rows is None else desc[rows]
-        return self.backbone(desc, sample.evecs, sample.evals, sample.mass, rows=rows)
+        return self.backbone(sample, rows)
 
     @staticmethod
     def spectral_shape(sample):
@@ -278,14 +355,13 @@ class DeepShells(CorrespondenceModule):
         return loss
 
     def configure_optimizers(self):
-        if self.backbone is None:
-            return None  # the identity ablation has nothing to learn
-        return torch.optim.Adam(self.parameters(), lr=self.lr)
+        # None for a backbone without parameters (the identity ablation has nothing to learn)
+        return build_optimizers(self.parameters(), self.optimizer, self.scheduler, self.scheduler_interval)
 
     def on_fit_start(self) -> None:
-        if self.backbone is None:
-            raise ConfigError("deep_shells: backbone=identity has no parameters to train; evaluate it without "
-                              "training (evaluate.py model=deep_shells_ablation)")
+        if not any(p.requires_grad for p in self.parameters()):
+            raise ConfigError(f"deep_shells: the {type(self.backbone).__name__} backbone has no parameters to train; "
+                              "evaluate it without training (evaluate.py model=deep_shells_ablation)")
 
     def validation_step(self, batch, batch_idx: int):
         self._validating_during_fit = self._trainer is not None and self._trainer.state.fn == "fit"

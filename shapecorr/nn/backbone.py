@@ -16,10 +16,13 @@ never a string naming it, so a new backbone is one module plus one config file (
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import torch
 from torch import nn
+
+from shapecorr.errors import ConfigError
 
 #: An operator request: operator name -> its parameters (an empty dict takes the operator's defaults).
 OperatorRequest = Mapping[str, Mapping[str, Any]]
@@ -37,7 +40,36 @@ class Backbone(nn.Module):
         """Features ``(n, C)`` at every vertex, or ``(len(rows), C)`` at the vertices ``rows (r,)`` int64."""
         raise NotImplementedError
 
+    #: Constructor arguments of this instance (plain values), set by subclasses: with the class they rebuild the
+    #: backbone, so that a model checkpoint records its backbone as a ``_target_`` node (:func:`backbone_node`).
+    init_args: Mapping[str, Any] | None = None
+
     @property
     def trainable(self) -> bool:
         """Whether the backbone has parameters to learn (the identity backbone has none)."""
         return any(p.requires_grad for p in self.parameters())
+
+
+def backbone_node(module: nn.Module) -> dict[str, Any] | None:
+    """The ``_target_`` node that rebuilds ``module`` (``hydra.utils.instantiate``), or None when it does not
+    record its constructor arguments (:attr:`Backbone.init_args`)."""
+    args = getattr(module, "init_args", None)
+    if args is None:
+        return None
+    cls = type(module)
+    return {"_target_": f"{cls.__module__}.{cls.__qualname__}", **dict(args)}
+
+
+def sample_descriptor(sample, name: str, who: str) -> torch.Tensor:
+    """The per-vertex descriptor ``name`` ``(n, c)`` of a sample (``sample.operators[name][name]``).
+
+    Raises
+    ------
+    ConfigError
+        The sample does not carry it (the message names the shape, the backbone and what the data provides).
+    """
+    arrays = sample.operators.get(name, {})
+    if name not in arrays:
+        raise ConfigError(f"{sample.name}: {who} needs the {name!r} descriptor, the data provides operators "
+                          f"{sorted(sample.operators)}; declare it in required_operators")
+    return arrays[name]

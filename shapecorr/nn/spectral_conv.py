@@ -33,6 +33,7 @@ import torch
 from torch import nn
 
 from shapecorr.errors import ConfigError
+from shapecorr.nn.backbone import Backbone, sample_descriptor
 
 #: Deep Shells ``filter_scale`` (param.py ``Param``), in the original doubled-eigenvalue convention.
 ORIGINAL_FILTER_SCALE = 5e4
@@ -48,6 +49,8 @@ DEFAULT_NUM_EIGS = 200
 DEFAULT_IN_CHANNELS = 352
 #: Deep Shells ``num_hidden_layers = 120`` (the number of output features).
 DEFAULT_OUT_CHANNELS = 120
+#: Input descriptor of the published network (SHOT, Deep Shells §4).
+DEFAULT_DESCRIPTOR = "shot"
 
 _ACTIVATIONS = {
     "relu": nn.ReLU,
@@ -292,6 +295,53 @@ class SpectralFilterBank(nn.Module):
             if i != last:
                 x = self.activation(x)
         return x
+
+
+class SpectralBackbone(Backbone, SpectralFilterBank):
+    """The Deep Shells feature extractor as a backbone: a :class:`SpectralFilterBank` on a per-vertex descriptor.
+
+    Reads ``sample.operators[descriptor]`` and the eigenbasis (``evals``, ``evecs``, ``mass``) of a
+    :class:`~shapecorr.data.datasets.ShapeSample`; declares ``{"eigenbasis": {"k": num_eigs}, descriptor: {}}``.
+    Its parameters (``layers.*``) are those of the filter bank, so state dicts and the original's released weights
+    (:func:`load_original_deep_shells_weights`) load unchanged. Config: ``configs/model/backbone/spectral_conv.yaml``.
+
+    Parameters
+    ----------
+    descriptor : str
+        Input descriptor operator (published: ``shot``, 352 channels).
+    in_channels, out_channels, hidden_channels, num_basis, num_eigs, max_frequency, activation
+        :class:`SpectralFilterBank` options (published: 352 -> 120, 16 cosines, 200 eigenpairs, T = 2.5e4 in
+        shapecorr's eigenvalue convention, no hidden layer).
+    """
+
+    def __init__(
+        self,
+        descriptor: str = DEFAULT_DESCRIPTOR,
+        in_channels: int = DEFAULT_IN_CHANNELS,
+        out_channels: int = DEFAULT_OUT_CHANNELS,
+        hidden_channels: tuple[int, ...] | list[int] = (),
+        num_basis: int = DEFAULT_NUM_BASIS,
+        num_eigs: int = DEFAULT_NUM_EIGS,
+        max_frequency: float = DEFAULT_MAX_FREQUENCY,
+        activation: str = "relu",
+    ):
+        SpectralFilterBank.__init__(self, in_channels, out_channels, tuple(hidden_channels), num_basis, num_eigs,
+                                    max_frequency, activation)
+        self.descriptor = str(descriptor)
+        self.init_args = {"descriptor": self.descriptor, "in_channels": int(in_channels),
+                          "out_channels": int(out_channels), "hidden_channels": [int(h) for h in hidden_channels],
+                          "num_basis": int(num_basis), "num_eigs": int(num_eigs),
+                          "max_frequency": float(max_frequency), "activation": str(activation)}
+
+    @property
+    def required_operators(self) -> dict:  # type: ignore[override]
+        """``{"eigenbasis": {"k": num_eigs}, descriptor: {}}``."""
+        return {"eigenbasis": {"k": self.num_eigs}, self.descriptor: {}}
+
+    def forward(self, sample, rows: torch.Tensor | None = None) -> torch.Tensor:  # type: ignore[override]
+        """Filtered features ``(n, out_channels)`` or ``(len(rows), out_channels)`` of a ShapeSample."""
+        features = sample_descriptor(sample, self.descriptor, "the spectral_conv backbone")
+        return SpectralFilterBank.forward(self, features, sample.evecs, sample.evals, sample.mass, rows=rows)
 
 
 def load_original_deep_shells_weights(module: SpectralFilterBank, path: str | PathLike) -> dict:

@@ -47,12 +47,12 @@ def test_default_run_trains_on_the_small_synthetic_set(tmp_path, _cfg, compose_c
     # the model's quick settings (configs/quick/<model>.yaml, debug=tiny: <model>_tiny.yaml)
     default = _cfg(tmp_path)
     assert default.model.num_samples == 400 and default.model.layer.refine_levels == 12
-    assert tiny.model.num_samples == 100 and tiny.model.num_eigs == 40 and tiny.model.layer.refine_levels == 4
+    assert tiny.model.num_samples == 100 and tiny.model.backbone.num_eigs == 40 and tiny.model.layer.refine_levels == 4
     published = _cfg(tmp_path, "model=deep_shells_published", "debug=tiny")
     assert published.model.num_samples == 100 and published.model.layer.smooth_x == "hard"
     # the published experiment is untouched by the quick defaults
     exp = _cfg(tmp_path, "experiment=deep_shells_faust_r", "data.root=/nonexistent")
-    assert exp.model.lr == 1e-4 and exp.model.num_samples == 2000 and exp.model.num_eigs == 200
+    assert exp.model.optimizer.lr == 1e-4 and exp.model.num_samples == 2000 and exp.model.backbone.num_eigs == 200
     assert exp.model.layer.refine_k_max == 500 and exp.model.layer.refine_levels == 40
     assert exp.trainer.limit_train_batches == 1.0 and exp.trainer.limit_test_batches == 1.0
 
@@ -106,7 +106,7 @@ def test_cli_prints_the_error_without_traceback(tmp_path, capsys, _cfg):
 
 def test_a_model_without_parameters_is_refused_before_any_data_work(tmp_path, capsys, _cfg):
     with pytest.raises(SystemExit) as exit_info:
-        train(_cfg(tmp_path, "model.backbone=identity", "~logger"))
+        train(_cfg(tmp_path, "model/backbone=identity", "~logger"))
     assert exit_info.value.code == EXIT_INVALID_INPUT
     assert "no trainable parameters" in capsys.readouterr().err
     assert not (tmp_path / "cache" / "synthetic").exists()

@@ -479,3 +479,31 @@ def test_entries_are_plain_npz_without_pickle(tmp_path, mesh):
         meta = json.loads(archive["__meta__"].tobytes())
     assert json.loads(meta["key"])["params"] == {"k": 5}
     assert meta["arrays"]["evecs"] == ["<f4", [42, 5]]
+
+
+def test_sparse_round_trip_without_pickle(tmp_path, mesh):
+    import scipy.sparse as sp
+
+    rng = np.random.default_rng(SEED)
+    dense = rng.standard_normal((7, 5)) * (rng.random((7, 5)) < 0.4)
+    csr, csc = sp.csr_array(dense), sp.csc_matrix(dense.T)
+    cache = ShapeCache(tmp_path)
+    key = CacheKey("grad", content_hash(*mesh), {"k": 3}, 1)
+    stored = cache.put(key, {"gx": csr, "gy": csc, "dense": dense})
+    again = cache.get(key)
+    assert again["gx"].format == "csr" and again["gy"].format == "csc"
+    np.testing.assert_array_equal(again["gx"].toarray(), dense.astype(np.float32))
+    np.testing.assert_array_equal(again["gy"].toarray(), dense.T.astype(np.float32))
+    assert again["gx"].dtype == np.float32 and again["gx"].shape == (7, 5)
+    np.testing.assert_array_equal(stored["gy"].toarray(), again["gy"].toarray())
+    # plain numeric members only: readable with allow_pickle=False, shape stored as an array
+    with np.load(cache.path(key), allow_pickle=False) as archive:
+        assert "__sparse__gx__indptr" in archive.files and archive["__sparse__gx__shape"].tolist() == [7, 5]
+    # an inconsistent sparse member is corruption: recomputed with a warning
+    with np.load(cache.path(key), allow_pickle=False) as archive:
+        members = {name: archive[name] for name in archive.files}
+    members["__sparse__gx__indices"] = members["__sparse__gx__indices"] + 100
+    with open(cache.path(key), "wb") as handle:
+        np.savez(handle, **members)
+    with pytest.warns(CacheWarning, match="corrupt"):
+        assert cache.get(key) is None

@@ -42,7 +42,7 @@ def test_baselines_are_matchers(tmp_path):
     assert isinstance(IdentityGT(), Matcher)
     assert isinstance(DescriptorNN(), Matcher)
     assert isinstance(PrecomputedMaps(tmp_path), Matcher)
-    assert DescriptorNN("shot").required_operators == {"descriptors": ["shot"]}
+    assert DescriptorNN("shot").required_operators == {"shot": {}}
 
 
 def test_identity_gt_has_zero_error(spheres):

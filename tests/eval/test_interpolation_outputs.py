@@ -138,7 +138,7 @@ def test_linear_blend_frames(spheres):
     torch.testing.assert_close(result.deformation[3], 2 * y.verts[p2p] - x.verts)  # extrapolation
     default = blend.match(x, y)
     assert default.times.tolist() == [0.0, 0.25, 0.5, 0.75, 1.0] and default.deformation.shape[0] == 5
-    assert LinearBlend(DescriptorNN("hks")).required_operators == {"descriptors": ["hks"]}
+    assert LinearBlend(DescriptorNN("hks")).required_operators == {"hks": {}}
     with pytest.raises(ConfigError, match="wraps a matcher"):
         LinearBlend(object())
     with pytest.raises(NumericalError, match="finite"):

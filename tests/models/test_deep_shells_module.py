@@ -19,12 +19,24 @@ from shapecorr.data.shape import make_shape
 from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.geometry.laplace_beltrami import eigenbasis
 from shapecorr.models.deep_shells import DeepShells
+from shapecorr.nn.identity import IdentityBackbone
+from shapecorr.nn.spectral_conv import SpectralBackbone
 
 N_EIG = 40
 N_CHANNELS = 16
 # small but complete settings: 3 training levels, short refinement within N_EIG eigenpairs
-SMALL = dict(in_channels=N_CHANNELS, out_channels=8, num_eigs=30, num_samples=150, refine=True,
-             layer=dict(k_array=[6, 8, 10], refine_k_min=6, refine_k_max=25, refine_levels=4))
+SMALL_BACKBONE = dict(in_channels=N_CHANNELS, out_channels=8, num_eigs=30)
+SMALL_LAYER = dict(num_samples=150, refine=True,
+                   layer=dict(k_array=[6, 8, 10], refine_k_min=6, refine_k_max=25, refine_levels=4))
+
+
+def small(**overrides) -> DeepShells:
+    """A small model with a fresh spectral backbone (``backbone=`` another one)."""
+    return DeepShells(**{"backbone": SpectralBackbone(**SMALL_BACKBONE), **SMALL_LAYER, **overrides})
+
+
+def identity() -> IdentityBackbone:
+    return IdentityBackbone("shot", out_channels=N_CHANNELS)
 
 pytestmark = pytest.mark.filterwarnings("ignore:You are trying to `self.log\\(\\)`")
 
@@ -58,7 +70,7 @@ def pair():
 def test_training_step_finite_loss_and_gradients(pair):
     batch, _ = pair
     torch.manual_seed(0)
-    model = DeepShells(**SMALL)
+    model = small()
     loss = model.training_step(batch, 0)
     assert loss.dim() == 0 and torch.isfinite(loss) and loss > 0
     loss.backward()
@@ -70,8 +82,8 @@ def test_training_step_finite_loss_and_gradients(pair):
 
 def test_level_weights_select_levels(pair):
     batch, _ = pair
-    uniform = DeepShells(**SMALL)
-    last = DeepShells(**SMALL, level_weights=[0.0, 0.0, 2.0])
+    uniform = small()
+    last = small(level_weights=[0.0, 0.0, 2.0])
     last.load_state_dict(uniform.state_dict())
     # same samples (same seed, epoch, batch index): the one-hot loss is the last level's energy
     from shapecorr.matching.deep_shells import deep_shells_layer, random_samples
@@ -85,20 +97,20 @@ def test_level_weights_select_levels(pair):
         assert torch.allclose(uniform.training_step(batch, 3), out.level_energies.mean(), rtol=1e-5)
         assert torch.allclose(last.training_step(batch, 3), out.level_energies[-1], rtol=1e-5)
     with pytest.raises(ConfigError, match="level_weights"):
-        DeepShells(**SMALL, level_weights=[1.0, 1.0])
+        small(level_weights=[1.0, 1.0])
 
 
 def test_sample_generator_depends_on_seed_epoch_batch():
-    model = DeepShells(**SMALL)
-    draw = lambda m, b: torch.randint(0, 10**6, (5,), generator=m.sample_generator(b))  # noqa: E731
+    model = small()
+    draw = lambda m, b: torch.randint(0, 10**6, (5,), generator=m.sample_generator(b))
     assert torch.equal(draw(model, 4), draw(model, 4))
     assert not torch.equal(draw(model, 4), draw(model, 5))
-    assert not torch.equal(draw(model, 4), draw(DeepShells(**{**SMALL, "seed": 1}), 4))
+    assert not torch.equal(draw(model, 4), draw(small(seed=1), 4))
 
 
 def test_nan_features_raise_numerical_error(pair):
     batch, _ = pair
-    model = DeepShells(**SMALL)
+    model = small()
     with torch.no_grad():
         model.backbone.layers[0].bias[0, 0] = float("nan")
     with pytest.raises(NumericalError):
@@ -109,23 +121,23 @@ def test_nan_features_raise_numerical_error(pair):
 
 def test_match_valid_maps_and_recovers_permutation(pair):
     batch, perm = pair
-    model = DeepShells(**{**SMALL, "backbone": "identity"})  # the descriptor is exact: an oracle
+    model = small(backbone=identity())  # the descriptor is exact: an oracle
     result = model.match(batch.x, batch.y).validate(batch.x.shape.n_verts, batch.y.shape.n_verts)
     assert result.p2p.dtype == torch.int64 and result.p2p_inv.shape == (batch.y.shape.n_verts,)
     assert (result.p2p.numpy() == perm).mean() > 0.8
     # the learned backbone (random weights) still gives valid full-length maps
-    learned = DeepShells(**SMALL).match(batch.x, batch.y)
+    learned = small().match(batch.x, batch.y)
     learned.validate(batch.x.shape.n_verts, batch.y.shape.n_verts)
 
 
 def test_cheap_validation_mode():
-    model = DeepShells(**SMALL, val_refine_levels=2)
+    model = small(val_refine_levels=2)
     cfg, refine = model.match_config()
     assert refine and cfg.refine_levels == 4
     model._validating_during_fit = True
     cfg, refine = model.match_config()
     assert refine and cfg.refine_levels == 2
-    model_off = DeepShells(**SMALL, val_refine_levels=0)
+    model_off = small(val_refine_levels=0)
     model_off._validating_during_fit = True
     assert model_off.match_config()[1] is False
 
@@ -133,38 +145,76 @@ def test_cheap_validation_mode():
 def test_required_operators():
     published = DeepShells()
     # refinement up to k = 499 with k+9 sigmoid weights
-    assert published.required_operators == {"descriptors": ["shot"], "n_eig": 508}
-    assert DeepShells(refine=False).required_operators["n_eig"] == 200  # the filter bank's eigenpairs
-    assert DeepShells(backbone="identity", refine=False).required_operators["n_eig"] == 30  # k = 21 + 9
-    assert list(DeepShells(backbone="identity").parameters()) == []
-    assert DeepShells(backbone="identity").configure_optimizers() is None
+    assert published.required_operators == {"eigenbasis": {"k": 508}, "shot": {}}
+    assert DeepShells(refine=False).required_operators["eigenbasis"]["k"] == 200  # the filter bank's eigenpairs
+    ablation = DeepShells(backbone=IdentityBackbone(), refine=False)
+    assert ablation.required_operators == {"shot": {}, "eigenbasis": {"k": 30}}  # k = 21 + 9
+    assert list(DeepShells(backbone=IdentityBackbone()).parameters()) == []
+    assert DeepShells(backbone=IdentityBackbone()).configure_optimizers() is None
 
 
 def test_invalid_options_raise_config_error():
     with pytest.raises(ConfigError, match="backbone"):
         DeepShells(backbone="resnet")
+    with pytest.raises(ConfigError, match="backbone"):
+        DeepShells(backbone={"not": "a node"})
     with pytest.raises(ConfigError, match="layer option"):
         DeepShells(layer={"not_an_option": 1})
     with pytest.raises(ConfigError, match="lr"):
-        DeepShells(lr=0.0)
+        DeepShells(optimizer={"_target_": "torch.optim.Adam", "_partial_": True, "lr": 0.0})
+    with pytest.raises(ConfigError, match="unknown option"):
+        DeepShells(in_channel=3)
+    with pytest.raises(ConfigError, match="backbone node"):
+        DeepShells(backbone=IdentityBackbone(), num_eigs=30)
 
 
 def test_checkpoint_roundtrip_without_arguments(tmp_path):
+    from functools import partial
+
     import pytorch_lightning as pl
 
-    model = DeepShells(**{**SMALL, "lr": 3e-4})
+    model = small(optimizer=partial(torch.optim.Adam, lr=3e-4),
+                  scheduler=partial(torch.optim.lr_scheduler.StepLR, step_size=5))
     path = tmp_path / "m.ckpt"
     torch.save({"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams),
                 "pytorch-lightning_version": pl.__version__}, path)
     loaded = DeepShells.load_from_checkpoint(str(path))
     assert loaded.lr == 3e-4 and loaded.config == model.config
+    assert isinstance(loaded.backbone, SpectralBackbone) and loaded.backbone.init_args == model.backbone.init_args
+    sched = loaded.configure_optimizers()["lr_scheduler"]["scheduler"]
+    assert isinstance(sched, torch.optim.lr_scheduler.StepLR) and sched.step_size == 5
     for (name, a), (_, b) in zip(model.state_dict().items(), loaded.state_dict().items()):
         assert torch.equal(a, b), name
 
 
+def test_old_checkpoints_with_flat_backbone_options_load_with_a_warning(tmp_path, pair):
+    import pytorch_lightning as pl
+
+    model = small()
+    # the hyperparameters DeepShells wrote before backbones were injected
+    old = {"backbone": "spectral", "descriptor": "shot", **SMALL_BACKBONE, "hidden_channels": [], "num_basis": 16,
+           "max_frequency": 25000.0, "activation": "relu", "lr": 3e-4, **SMALL_LAYER, "level_weights": None,
+           "val_refine_levels": None, "seed": 0}
+    path = tmp_path / "old.ckpt"
+    torch.save({"state_dict": model.state_dict(), "hyper_parameters": old,
+                "pytorch-lightning_version": pl.__version__}, path)
+    with pytest.warns(FutureWarning, match="model.backbone"):
+        loaded = DeepShells.load_from_checkpoint(str(path))
+    assert loaded.lr == 3e-4 and loaded.backbone.init_args == model.backbone.init_args
+    batch, _ = pair
+    with torch.no_grad():
+        assert torch.equal(loaded.features(batch.x), model.features(batch.x))
+    ident = tmp_path / "old_identity.ckpt"
+    torch.save({"state_dict": {}, "hyper_parameters": {**old, "backbone": "identity", "in_channels": N_CHANNELS},
+                "pytorch-lightning_version": pl.__version__}, ident)
+    with pytest.warns(FutureWarning):
+        loaded = DeepShells.load_from_checkpoint(str(ident))
+    assert isinstance(loaded.backbone, IdentityBackbone) and not loaded.backbone.trainable
+
+
 def test_configs_compose_and_instantiate(tmp_path, compose_config):
     cfg = compose_config("train", [f"paths.cache_dir={tmp_path}", "paths.output_dir=" + str(tmp_path),
-                                   "model.lr=0.001", "model.level_weights=[0,0,0,0,1,1,1,1]"])
+                                   "model.optimizer.lr=0.001", "model.level_weights=[0,0,0,0,1,1,1,1]"])
     model = instantiate(cfg.model, _convert_="object")
     assert isinstance(model, DeepShells) and model.lr == 1e-3
     assert torch.allclose(model.level_weights, torch.tensor([0, 0, 0, 0, 0.25, 0.25, 0.25, 0.25]))
@@ -174,12 +224,14 @@ def test_configs_compose_and_instantiate(tmp_path, compose_config):
 
     exp = compose_config("train", ["experiment=deep_shells_faust_r", "data.root=/nonexistent", "logger=csv"])
     assert exp.trainer.accumulate_grad_batches == 53 and exp.model.num_samples == 2000
-    assert exp.model.lr == 1e-4 and exp.trainer.limit_train_batches == 1.0
+    assert exp.model.optimizer.lr == 1e-4 and exp.trainer.limit_train_batches == 1.0
     assert exp.data.splits.train.index_range == [0, 80]
     assert exp.logger._target_.endswith("CSVLogger")
 
     ablation = instantiate(compose_config("evaluate", ["model=deep_shells_ablation"]).model, _convert_="object")
-    assert ablation.backbone is None and ablation.refine
-    ev = instantiate(compose_config("evaluate", ["model=deep_shells", "model.backbone=identity"]).model,
-                     _convert_="object")
-    assert ev.backbone is None
+    assert isinstance(ablation.backbone, IdentityBackbone) and ablation.refine
+    for name in ("evaluate", "train"):
+        ev = instantiate(compose_config(name, ["model=deep_shells", "model/backbone=identity"]).model, _convert_="object")
+        assert isinstance(ev.backbone, IdentityBackbone) and not ev.backbone.trainable
+    tiny = instantiate(compose_config("train", ["debug=tiny"]).model, _convert_="object")
+    assert isinstance(tiny.backbone, SpectralBackbone) and tiny.backbone.num_eigs == 40

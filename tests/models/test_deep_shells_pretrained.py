@@ -23,11 +23,20 @@ from shapecorr.data.datasets import ShapeSample
 from shapecorr.data.shape import make_shape
 from shapecorr.errors import ConfigError
 from shapecorr.models.deep_shells import PRETRAINED_CHECKPOINT_KEY, DeepShells
-from shapecorr.nn.spectral_conv import ORIGINAL_EIGENVALUE_FACTOR
+from shapecorr.nn.identity import IdentityBackbone
+from shapecorr.nn.spectral_conv import ORIGINAL_EIGENVALUE_FACTOR, SpectralBackbone
 
 C_IN, C_OUT, N_BASIS, N_EIGS = 6, 4, 5, 12
-SMALL = {"in_channels": C_IN, "out_channels": C_OUT, "num_basis": N_BASIS, "num_eigs": N_EIGS, "max_frequency": 50.0,
-         "num_samples": 50, "layer": {"k_array": [6, 8], "refine_k_min": 6, "refine_k_max": 10, "refine_levels": 2}}
+SMALL_BACKBONE = {"in_channels": C_IN, "out_channels": C_OUT, "num_basis": N_BASIS, "num_eigs": N_EIGS,
+                  "max_frequency": 50.0}
+SMALL_LAYER = {"num_samples": 50, "layer": {"k_array": [6, 8], "refine_k_min": 6, "refine_k_max": 10, "refine_levels": 2}}
+
+
+def small(pretrained=None, backbone=None, **backbone_overrides) -> DeepShells:
+    """A small model with a fresh spectral backbone (or ``backbone``)."""
+    if backbone is None:
+        backbone = SpectralBackbone(**{**SMALL_BACKBONE, **backbone_overrides})
+    return DeepShells(backbone=backbone, pretrained=pretrained, **SMALL_LAYER)
 PUBLISHED_WEIGHTS = "published_weights_faust_scape_ep20.pth"
 
 
@@ -36,7 +45,7 @@ def _original_file(path: Path, seed: int = 0, filter_scale: float | None = None,
     gen = torch.Generator().manual_seed(seed)
     weight = torch.randn(*weight_shape, generator=gen)
     bias = torch.randn(weight_shape[0], generator=gen)
-    scale = ORIGINAL_EIGENVALUE_FACTOR * SMALL["max_frequency"] if filter_scale is None else filter_scale
+    scale = ORIGINAL_EIGENVALUE_FACTOR * SMALL_BACKBONE["max_frequency"] if filter_scale is None else filter_scale
     torch.save({"feat_mod": {"conv.a.0.weight": weight, "conv.a.0.bias": bias},
                 "par": {"filter_scale": scale, "num_evecs": num_evecs}}, path)
     return {"weight": weight, "bias": bias, "filter_scale": scale}
@@ -45,7 +54,7 @@ def _original_file(path: Path, seed: int = 0, filter_scale: float | None = None,
 def test_original_format_defines_the_original_filters(tmp_path):
     path = tmp_path / "ckpt_ep20.pth"
     orig = _original_file(path)
-    model = DeepShells(**SMALL, pretrained=path)
+    model = small(pretrained=path)
     assert model.pretrained == str(path)
     evals = torch.linspace(0.0, 80.0, N_EIGS)  # shapecorr convention
     ours = model.backbone.layers[0].filters(evals)  # (K, c_in, c_out)
@@ -55,8 +64,8 @@ def test_original_format_defines_the_original_filters(tmp_path):
     expected = (basis @ orig["weight"].double().T + orig["bias"].double()).reshape(N_EIGS, C_IN, C_OUT)
     assert torch.allclose(ours.double(), expected, atol=1e-5)
     # a second model from the same file is identical; a fresh one is not
-    again = DeepShells(**SMALL, pretrained=str(path))
-    fresh = DeepShells(**SMALL)
+    again = small(pretrained=str(path))
+    fresh = small()
     for name, value in model.state_dict().items():
         assert torch.equal(value, again.state_dict()[name]), name
     assert not torch.equal(model.backbone.layers[0].weight, fresh.backbone.layers[0].weight)
@@ -65,23 +74,23 @@ def test_original_format_defines_the_original_filters(tmp_path):
 def test_lightning_checkpoint_weights_roundtrip(tmp_path):
     import pytorch_lightning as pl
 
-    source = DeepShells(**SMALL)
+    source = small()
     with torch.no_grad():
         source.backbone.layers[0].weight.add_(1.0)
     ckpt = tmp_path / "epoch001.ckpt"
     torch.save({"state_dict": source.state_dict(), "hyper_parameters": dict(source.hparams),
                 "pytorch-lightning_version": pl.__version__}, ckpt)
-    model = DeepShells(**SMALL, pretrained=ckpt)
+    model = small(pretrained=ckpt)
     for name, value in source.backbone.state_dict().items():
         assert torch.equal(value, model.backbone.state_dict()[name]), name
     # other sizes do not fit; an identity-backbone checkpoint has nothing to load
     with pytest.raises(ConfigError, match="does not fit") as err:
-        DeepShells(**{**SMALL, "out_channels": C_OUT + 1}, pretrained=ckpt)
+        small(pretrained=ckpt, out_channels=C_OUT + 1)
     assert str(ckpt) in str(err.value)
     empty = tmp_path / "identity.ckpt"
-    torch.save({"state_dict": DeepShells(**SMALL, backbone="identity").state_dict()}, empty)
+    torch.save({"state_dict": small(backbone=IdentityBackbone()).state_dict()}, empty)
     with pytest.raises(ConfigError, match="no filter-bank weights"):
-        DeepShells(**SMALL, pretrained=empty)
+        small(pretrained=empty)
 
 
 def test_checkpoint_of_a_pretrained_model_loads_without_the_file(tmp_path):
@@ -89,7 +98,7 @@ def test_checkpoint_of_a_pretrained_model_loads_without_the_file(tmp_path):
 
     weights = tmp_path / "ckpt.pth"
     _original_file(weights, seed=3)
-    model = DeepShells(**SMALL, pretrained=weights)
+    model = small(pretrained=weights)
     assert "pretrained" not in model.hparams
     checkpoint = {"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams),
                   "pytorch-lightning_version": pl.__version__}
@@ -107,7 +116,7 @@ def test_checkpoint_of_a_pretrained_model_loads_without_the_file(tmp_path):
                                   "identity"])
 def test_bad_weights_raise_config_error_naming_the_file(tmp_path, case):
     path = tmp_path / "weights.pth"
-    options = dict(SMALL)
+    options = {}
     if case == "garbage":
         path.write_bytes(b"this is not a torch file")
     elif case == "not_deep_shells":
@@ -120,16 +129,17 @@ def test_bad_weights_raise_config_error_naming_the_file(tmp_path, case):
         _original_file(path, weight_shape=(C_IN * C_OUT + 1, N_BASIS))
     elif case == "identity":
         _original_file(path)
-        options["backbone"] = "identity"
+        options["backbone"] = IdentityBackbone()
     with pytest.raises(ConfigError) as err:
-        DeepShells(**options, pretrained=path)
+        small(pretrained=path, **options)
     assert str(path) in str(err.value)
 
 
 def test_published_config_reads_the_environment(tmp_path, monkeypatch, compose_config):
     monkeypatch.delenv("SHAPECORR_DEEP_SHELLS_WEIGHTS", raising=False)
-    cfg = compose_config("evaluate", ["model=deep_shells_published", "model.in_channels=6", "model.out_channels=4",
-                                      "model.num_basis=5", "model.num_eigs=12", "model.max_frequency=50.0"])
+    cfg = compose_config("evaluate", ["model=deep_shells_published", "model.backbone.in_channels=6",
+                                      "model.backbone.out_channels=4", "model.backbone.num_basis=5",
+                                      "model.backbone.num_eigs=12", "model.backbone.max_frequency=50.0"])
     with pytest.raises(MissingMandatoryValue, match="model.pretrained"):
         instantiate(cfg.model, _convert_="object")
     path = tmp_path / "ckpt.pth"
