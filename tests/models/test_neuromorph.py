@@ -28,15 +28,19 @@ from shapecorr.data.datasets import PairSample, ShapeSample
 from shapecorr.data.shape import make_shape
 from shapecorr.errors import ConfigError
 from shapecorr.losses.weighted import WeightedLoss
-from shapecorr.models.neuromorph import (
-    NeuroMorph,
-    interpolation_strip_figure,
-    log_interpolation,
-)
+from shapecorr.models.neuromorph import NeuroMorph
 from shapecorr.models.schedules import EpochSchedule, LossWeightSchedule
+from shapecorr.nn.edgeconv_backbone import EdgeConvBackbone
+from shapecorr.viz.interpolation import interpolation_strip_figure, log_interpolation
 
 REPO = Path(__file__).resolve().parents[2]
-SMALL = dict(feature_dim=16, hidden_channels=16, n_blocks=2)
+SMALL_NET = dict(hidden_channels=16, n_blocks=2)
+
+
+def small() -> dict:
+    """Options of a shrunk model: a fresh 16-channel, 2-layer backbone and interpolator."""
+    return dict(backbone=EdgeConvBackbone(feature_dim=16, **SMALL_NET), interpolator=SMALL_NET)
+
 FINAL_LINE = re.compile(r"^test geodesic error: (\d+\.\d+) \(fraction of sqrt\(area\)\) over (\d+) pairs$")
 
 pytestmark = pytest.mark.filterwarnings("ignore:You are trying to `self.log\\(\\)`", "ignore::DeprecationWarning")
@@ -88,7 +92,7 @@ class LossSpy:
 
 def _model(tmp_path, **kwargs) -> NeuroMorph:
     torch.manual_seed(0)
-    options = dict(SMALL, cache_dir=str(tmp_path), augment=dict(resolution=[200, 400], variants=2))
+    options = dict(small(), cache_dir=str(tmp_path), augment=dict(resolution=[200, 400], variants=2))
     return NeuroMorph(**{**options, **kwargs})
 
 
@@ -151,7 +155,7 @@ def test_map_gradient_geodesic_lets_only_the_geodesic_term_train_the_features(pa
     with pytest.raises(ConfigError, match="map_gradient"):
         model.map_gradient = "registration"
     with pytest.raises(ConfigError, match="map_gradient"):
-        NeuroMorph(**SMALL, map_gradient="none")
+        NeuroMorph(**small(), map_gradient="none")
 
 
 def test_geodesics_are_skipped_while_lambda_geo_is_zero(pair, tmp_path, monkeypatch):
@@ -191,8 +195,8 @@ def test_interpolate_frames_maps_and_extrapolation(pair, tmp_path):
         torch.testing.assert_close(chosen, soft.max(1).values, rtol=1e-5, atol=0.0)
         assert float((p2p == soft.argmax(1)).float().mean()) > 0.95
     match = model.match(x, y)
-    torch.testing.assert_close(match.times, torch.tensor(nm.DEFAULT_EVAL_TIMES))
-    assert match.deformation.shape == (len(nm.DEFAULT_EVAL_TIMES), x.shape.n_verts, 3)
+    torch.testing.assert_close(match.times, torch.tensor(nm.DEFAULT_INTERP_TIMES))
+    assert match.deformation.shape == (len(nm.DEFAULT_INTERP_TIMES), x.shape.n_verts, 3)
     assert torch.equal(match.p2p, result.p2p)
     for bad in ([], [0.0, float("nan")], [[0.0, 1.0]]):
         with pytest.raises(ConfigError):
@@ -212,19 +216,19 @@ def test_query_resolution_runs_on_a_remesh_and_carries_back(pair, tmp_path, monk
     # oracle: the same network on the remeshed pair, carried back by hand
     cache = ShapeCache(tmp_path)
     rx, ry = cached_remesh(cache, x.verts, x.faces, 300), cached_remesh(cache, y.verts, y.faces, 300)
-    small = _plain_copy(model).interpolate(remeshed_sample(x, rx), remeshed_sample(y, ry), times)
+    low = _plain_copy(model).interpolate(remeshed_sample(x, rx), remeshed_sample(y, ry), times)
     nearest_x, source_y = torch.from_numpy(rx.nearest_vertex), torch.from_numpy(ry.source_vertex)
-    assert torch.equal(result.p2p, source_y[small.p2p[nearest_x]])
+    assert torch.equal(result.p2p, source_y[low.p2p[nearest_x]])
     source_x, nearest_y = torch.from_numpy(rx.source_vertex), torch.from_numpy(ry.nearest_vertex)
-    assert torch.equal(result.p2p_inv, source_x[small.p2p_inv[nearest_y]])
-    expected = x.verts + rx.lift(small.deformation - torch.from_numpy(rx.verts))
+    assert torch.equal(result.p2p_inv, source_x[low.p2p_inv[nearest_y]])
+    expected = x.verts + rx.lift(low.deformation - torch.from_numpy(rx.verts))
     torch.testing.assert_close(result.deformation, expected)
     model.interpolate(x, y, times)
     assert calls == [300, 300]  # in-memory LRU: no second lookup
 
 
 def _plain_copy(model: NeuroMorph) -> NeuroMorph:
-    copy = NeuroMorph(**SMALL, cache_dir=model.cache_dir).eval()
+    copy = NeuroMorph(**small(), cache_dir=model.cache_dir).eval()
     copy.load_state_dict(model.state_dict())
     return copy
 
@@ -232,7 +236,7 @@ def _plain_copy(model: NeuroMorph) -> NeuroMorph:
 def test_interpolation_metrics_use_the_frame_at_t1(pair, tmp_path, monkeypatch):
     from shapecorr.eval.protocol import score_deformation
 
-    model = _model(tmp_path, eval_times=[0.0, 0.5, 1.5]).eval()  # t = 1 missing: computed for the metrics
+    model = _model(tmp_path, interp_times=[0.0, 0.5, 1.5]).eval()  # t = 1 missing: computed for the metrics
     logged = {}
     monkeypatch.setattr(model, "log", lambda name, value, **kw: logged.__setitem__(name, value))
     result = model.match(pair.x, pair.y)
@@ -246,23 +250,28 @@ def test_interpolation_metrics_use_the_frame_at_t1(pair, tmp_path, monkeypatch):
 def test_options_are_validated(tmp_path):
     # Deep Shells keys that old checkpoints carry: dropped with a warning, and not saved again
     with pytest.warns(UserWarning, match="ignoring Deep Shells option"):
-        legacy = NeuroMorph(**SMALL, num_samples=3, layer={"k": 1}, val_refine_levels=2, num_eigs=4)
+        legacy = NeuroMorph(**small(), num_samples=3, layer={"k": 1}, val_refine_levels=2, num_eigs=4)
     assert not nm.LEGACY_CHECKPOINT_OPTIONS & set(legacy.hparams)
-    for bad in (dict(typo_option=1), dict(lr=0.0), dict(sigma=-1.0), dict(query_resolution=2),
-                dict(arap_edge_weight_scale=0.0), dict(augment=dict(axis="q")), dict(eval_times=[]),
+    for bad in (dict(typo_option=1), dict(sigma=-1.0), dict(query_resolution=2),
+                dict(arap_edge_weight_scale=0.0), dict(augment=dict(axis="q")), dict(interp_times=[]), dict(interp_times=[1.0, 0.5]),
                 dict(loss={"not": "a loss"}), dict(n_intermediate=-1), dict(n_intermediate=1.5)):
         with pytest.raises(ConfigError):
-            NeuroMorph(**SMALL, **bad)
-    model = NeuroMorph(**SMALL)
+            NeuroMorph(**small(), **bad)
+    model = NeuroMorph(**small())
     model.n_intermediate = 7
     assert model.n_intermediate == 7
     with pytest.raises(ConfigError):
         model.n_intermediate = -2
-    assert "loss" not in model.hparams and model.hparams["pool"] == "global"
+    assert "loss" not in model.hparams and model.hparams["interpolator"]["pool"] == "global"
+    assert model.hparams["backbone"]["pool"] == "global" and model.hparams["backbone"]["feature_dim"] == 16
+    with pytest.raises(ConfigError, match="backbone"):
+        NeuroMorph(backbone=torch.nn.Linear(3, 3))
+    with pytest.raises(ConfigError, match="interpolator"):
+        NeuroMorph(interpolator=dict(width=3))
 
 
 def test_schedule_callbacks_drive_the_module(tmp_path):
-    model = NeuroMorph(**SMALL)
+    model = NeuroMorph(**small())
     EpochSchedule("n_intermediate", [[0, 0], [300, 1], [450, 3], [525, 7]]).apply(model, 460)
     LossWeightSchedule("geo", [[0, 50.0], [300, 0.0]]).apply(model, 460)
     assert model.n_intermediate == 3 and model.lambda_geo == 0.0
@@ -281,7 +290,13 @@ def test_configs_compose_with_the_published_settings(tmp_path):
         warnings.simplefilter("error")
         model = instantiate(cfg.model, _convert_="object")
     assert isinstance(model, NeuroMorph) and model.loss.weights == {"registration": 1.0, "arap": 1.0, "geo": 50.0}
-    assert model.sigma == 100.0 and model.lr == 1e-4 and model.augment.resolution == (200, 2000)
+    assert model.sigma == 100.0 and model.augment.resolution == (200, 2000)
+    assert isinstance(model.backbone, EdgeConvBackbone) and model.backbone.out_channels == 128
+    assert model.backbone.required_operators == {}
+    assert model.interpolator.net.fc_out.in_features == 128 and len(model.interpolator.net.blocks) == 5
+    optimizer = model.configure_optimizers()
+    assert isinstance(optimizer, torch.optim.Adam) and optimizer.defaults["lr"] == 1e-4
+    assert model.interp_times == nm.DEFAULT_INTERP_TIMES
     callbacks = {name: instantiate(node, _convert_="object") for name, node in cfg.callbacks.items()}
     assert callbacks["neuromorph_T"].schedule.values == [0, 1, 3, 7]
     assert callbacks["neuromorph_T"].schedule.epochs == [0, 300, 450, 525]
@@ -365,6 +380,7 @@ def test_train_cli_tiny_smoke_run(tmp_path):
                 "val/deformation_conformal_distortion"):
         assert tag in scalars, (tag, sorted(scalars))
     assert "val/interpolation/strip" in events.Tags()["images"]
+    assert "neuromorph: mapping old option" not in proc.stderr
     state = torch.load(last, map_location="cpu", weights_only=False)
     assert state["global_step"] == 2 and state["hyper_parameters"]["augment"]["variants"] == 2
     # the evaluation path: load_from_checkpoint (default loss) and query a pair
