@@ -16,7 +16,6 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from shapecorr.data.augmentation import AugmentedPair, SampleKey
-
 from shapecorr.data.datasets import PairDataset, PairSample, ShapeDataset
 from shapecorr.data.operators import OperatorConfig
 from shapecorr.data.shape import Normalization

@@ -79,7 +79,12 @@ from shapecorr.data.augmentation import (
 )
 from shapecorr.data.cache import ShapeCache, content_hash, default_cache_root
 from shapecorr.errors import ConfigError, NumericalError
-from shapecorr.eval.protocol import UNIT_TIME, check_interp_times, score_deformation, unit_time_index
+from shapecorr.eval.protocol import (
+    UNIT_TIME,
+    check_interp_times,
+    score_deformation,
+    unit_time_index,
+)
 from shapecorr.geometry.mesh_graph import undirected_edges
 from shapecorr.losses.arap import NEUROMORPH_DISPLACEMENT_WEIGHT, arap_sequence_loss
 from shapecorr.losses.geodesic_distortion import geodesic_distortion_loss

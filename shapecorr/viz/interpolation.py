@@ -16,7 +16,14 @@ import torch
 from matplotlib.figure import Figure
 
 from shapecorr.errors import ConfigError
-from shapecorr.viz.render import DEFAULT_VIEW, PANEL_SIZE, RENDER_DPI, coordinate_colors, draw_mesh, figure_to_rgb
+from shapecorr.viz.render import (
+    DEFAULT_VIEW,
+    PANEL_SIZE,
+    RENDER_DPI,
+    coordinate_colors,
+    draw_mesh,
+    figure_to_rgb,
+)
 from shapecorr.viz.tensorboard import _COLOR_MAX, summary_writer
 
 #: Gray level of the target panel of the interpolation strip.

@@ -23,7 +23,13 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 import shapecorr.models.neuromorph as nm
-from shapecorr.data.augmentation import PairAugmenter, cached_remesh, remeshed_sample, rotation_about_axis, step_rng
+from shapecorr.data.augmentation import (
+    PairAugmenter,
+    cached_remesh,
+    remeshed_sample,
+    rotation_about_axis,
+    step_rng,
+)
 from shapecorr.data.cache import ShapeCache
 from shapecorr.data.datasets import PairSample, ShapeSample
 from shapecorr.data.shape import make_shape
