@@ -538,7 +538,8 @@ class AugmentedPairDataset(Dataset):
 
     Items: ``dataset[SampleKey(epoch, position, index)]`` -> :class:`AugmentedPair` of pair ``index`` with the
     draws of ``(seed, epoch, position)``; a plain int ``k`` stands for ``SampleKey(epoch, k, k)`` with the
-    dataset's :attr:`epoch` (set by :meth:`set_epoch`; samplers that do not yield keys, e.g. a distributed one).
+    dataset's :attr:`epoch` (set by :meth:`set_epoch`; for samplers that do not yield keys, e.g. a plain
+    sequential one).
     """
 
     def __init__(self, pairs: PairDataset, augmenter: PairAugmenter, geodesics: bool | Callable[[int], bool] = True):

@@ -13,7 +13,7 @@ from typing import Any, Callable, Mapping
 
 import pytorch_lightning as pl
 import torch
-from torch.utils.data import DataLoader, Dataset, Sampler
+from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 
 from shapecorr.data.augmentation import AugmentedPair, SampleKey
 from shapecorr.data.datasets import PairDataset, PairSample, ShapeDataset
@@ -92,6 +92,19 @@ class ResumableShuffleSampler(Sampler[int]):
         if self.keys:
             return iter(SampleKey(self.epoch, skip + k, i) for k, i in enumerate(order))
         return iter(order)
+
+
+class KeyedDistributedSampler(DistributedSampler):
+    """A rank's shard of the shuffled indices (Lightning's ``DistributedSampler`` order), as
+    :class:`~shapecorr.data.augmentation.SampleKey` ``(epoch, position in the shard, index)``.
+
+    Used for datasets whose items depend on the epoch and the step (augmented training pairs) under several
+    ranks; being a ``DistributedSampler``, Lightning keeps it (and calls its ``set_epoch``) instead of replacing
+    it. Resumption restarts the epoch, as for Lightning's own sampler.
+    """
+
+    def __iter__(self):
+        return iter(SampleKey(self.epoch, k, int(i)) for k, i in enumerate(super().__iter__()))
 
 
 def _resume_position(trainer) -> tuple[int, int]:
@@ -175,7 +188,8 @@ class ShapePairDataModule(pl.LightningDataModule):
         """Serve the training pairs through ``wrapper(pairs)`` (a model's data-side augmentation), or plainly (None).
 
         The wrapped dataset is indexed by :class:`~shapecorr.data.augmentation.SampleKey` ``(epoch, position,
-        index)`` (a plain index under several ranks); it runs in the DataLoader workers. Call before the training
+        index)`` (:class:`ResumableShuffleSampler` with ``keys=True``; under several ranks
+        :class:`KeyedDistributedSampler`, position = place in the rank's shard); it runs in the DataLoader workers. Call before the training
         loader is built (a model does it in its ``setup`` hook).
         """
         self._train_wrapper = wrapper
@@ -250,6 +264,10 @@ class ShapePairDataModule(pl.LightningDataModule):
             # (seed, epoch)-determined order that can restart mid-epoch: resumed runs see the same pairs
             sampler = ResumableShuffleSampler(len(dataset), self.shuffle_seed, keys=wrapped)
             sampler.resume_at(*_resume_position(self.trainer))
+        elif shuffle and wrapped:
+            # several ranks, items keyed by the epoch: Lightning's shuffling, with keys
+            sampler = KeyedDistributedSampler(dataset, num_replicas=self.trainer.world_size,
+                                              rank=self.trainer.global_rank, shuffle=True, seed=self.shuffle_seed)
         elif shuffle:
             # several ranks: Lightning's DistributedSampler shuffles per (seed, epoch); resumption restarts the epoch
             generator = torch.Generator().manual_seed(self.shuffle_seed)

@@ -277,3 +277,20 @@ def test_keyed_sampler_yields_epoch_position_index_and_resumes():
     assert list(keyed) == [SampleKey(3, k, i) for k, i in enumerate(order)]
     keyed.resume_at(3, 4)
     assert list(keyed) == [SampleKey(3, k, i) for k, i in enumerate(order)][4:]
+
+
+def test_keyed_distributed_sampler_shards_like_lightnings_sampler():
+    from torch.utils.data import DistributedSampler
+
+    from shapecorr.data.augmentation import SampleKey
+    from shapecorr.data.datamodule import KeyedDistributedSampler
+
+    data = list(range(9))
+    for rank in (0, 1):
+        keyed = KeyedDistributedSampler(data, num_replicas=2, rank=rank, shuffle=True, seed=4)
+        plain = DistributedSampler(data, num_replicas=2, rank=rank, shuffle=True, seed=4)
+        keyed.set_epoch(2)
+        plain.set_epoch(2)
+        assert list(keyed) == [SampleKey(2, k, i) for k, i in enumerate(plain)]
+    keyed.set_epoch(3)
+    assert [key.epoch for key in keyed] == [3] * len(keyed)
