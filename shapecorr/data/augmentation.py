@@ -1,6 +1,6 @@
 """Training-time augmentation of shape pairs: remeshing to random resolutions and a shared rotation.
 
-NeuroMorph (Eisenberger et al., CVPR 2021; methods-digest §4.1) trains on pairs whose shapes are remeshed
+NeuroMorph (Eisenberger et al., CVPR 2021; docs/neuromorph.md) trains on pairs whose shapes are remeshed
 independently to random resolutions (every resolution 200..2000 of its 2000-vertex meshes, one drawn
 uniformly per shape and step) and rotated by the *same* random angle about the up axis (y for FAUST).
 
@@ -69,11 +69,11 @@ from shapecorr.geometry.remeshing import (
 
 #: Version of the cached remeshes (bump when remeshing or the stored correspondence changes).
 REMESH_CACHE_VERSION = 1
-#: NeuroMorph remeshing augmentation: every resolution from 200 to 2000 vertices (methods-digest §4.1.3).
+#: NeuroMorph remeshing augmentation: every resolution from 200 to 2000 vertices (NeuroMorph paper and code).
 DEFAULT_RESOLUTION_RANGE = (200, 2000)
 #: Remeshes per shape (project choice: a finite pool keeps the cache bounded, see the module docstring).
 DEFAULT_REMESH_VARIANTS = 8
-#: NeuroMorph FAUST/SHREC'20 rotation axis: y (axis = 1; MANO uses z), methods-digest §4.1.6.
+#: NeuroMorph FAUST/SHREC'20 rotation axis: y (axis = 1; MANO uses z), NeuroMorph code.
 DEFAULT_UP_AXIS = "y"
 AXES = {"x": 0, "y": 1, "z": 2}
 #: Geodesic method for remeshed shapes (shapecorr.geometry.geodesics; the original used fast marching).

@@ -1,6 +1,6 @@
 """NeuroMorph as a LightningModule: correspondence and interpolation in one network pass.
 
-Eisenberger, Novotny, Kerchenbaum, Labatut, Neverova, Cremers, Vedaldi, CVPR 2021 (methods-digest §4). The
+Eisenberger, Novotny, Kerchenbaum, Labatut, Neverova, Cremers, Vedaldi, CVPR 2021 (docs/neuromorph.md). The
 module is thin; the pieces live elsewhere:
 
 * features: an injected :class:`~shapecorr.nn.backbone.Backbone` (``model/backbone`` config node; published:
@@ -14,7 +14,8 @@ module is thin; the pieces live elsewhere:
   registration 1, ARAP 1 over the sequence ``[x, X(t_1), ..., X(1)]``, geodesic distortion 50). Its terms
   receive ``verts_x_deformed`` (X(1)), ``verts_y``, ``pi_x_to_y``, ``pi_y_to_x``, ``frames``, ``edges``,
   ``edge_weights`` and, while the geodesic term is active, ``dist_x`` and ``dist_y``;
-* schedules (published: T 0 -> 1 -> 3 -> 7 and lambda_geo 50 -> 0, digest §4.6) are Lightning callbacks
+* TensorBoard drawing of the first validation pair's sequence: :func:`shapecorr.viz.interpolation.log_interpolation`;
+* schedules (published: T 0 -> 1 -> 3 -> 7 and lambda_geo 50 -> 0, NeuroMorph code) are Lightning callbacks
   (:mod:`shapecorr.models.schedules`) configured next to the model; the module only exposes the settable
   :attr:`NeuroMorph.n_intermediate` and the loss weights.
 
@@ -41,7 +42,7 @@ networks for ``T + 1`` time steps. Queries never hold a full soft map: ``match_c
 at a time (the interpolation target ``Pi y`` is accumulated per chunk), so full-resolution queries of 10k
 vertices need ~160 MB for the similarities instead of 400 MB per soft map.
 
-Decisions on the original's [BUG?] items (methods-digest §4.2, §4.5, §8): global max-pool over vertices
+Decisions on the original's [BUG?] items (docs/neuromorph.md): global max-pool over vertices
 (``pool="global"``; original: per-vertex max over channels, ``"channel"``), detached ARAP rotations and the
 "both-sides" ARAP energy (loss config; original: differentiated SVD, "average" of the two rotations), no
 rotation at test time (the original rotated test pairs randomly as well).
@@ -108,7 +109,7 @@ from shapecorr.viz.interpolation import log_interpolation
 #: NeuroMorph optimizer: Adam, learning rate 1e-4, no scheduler (NeuroMorph paper, CVPR 2021, and its released
 #: training script); configs/model/optimizer/adam.yaml.
 DEFAULT_LR = 1e-4
-#: Published loss weights (methods-digest §4.5): E_align 1, E_arap 1, E_geo 50 (the latter scheduled to 0).
+#: Published loss weights (NeuroMorph paper, CVPR 2021): E_align 1, E_arap 1, E_geo 50 (the latter scheduled to 0).
 DEFAULT_LOSS_WEIGHTS = {"registration": 1.0, "arap": 1.0, "geo": 50.0}
 #: Name of the loss term needing geodesic matrices (their lookup is skipped while its weight is 0).
 DEFAULT_GEO_TERM = "geo"
