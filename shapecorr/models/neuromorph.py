@@ -154,11 +154,16 @@ def _map_legacy_options(legacy: Mapping[str, Any], backbone, interpolator, optim
                   "model.optimizer (lr) and model.interp_times (eval_times); checkpoints written before these "
                   "became config nodes carry them", stacklevel=3)
     network = {k: legacy[k] for k in LEGACY_NETWORK_OPTIONS if k in legacy}
-    if network and backbone is None:
+    if network and (backbone is not None or interpolator is not None):
+        # a config (not an old checkpoint) with both: the old keys would be silently ignored
+        raise ConfigError(f"neuromorph: {sorted(network)} are options of model.backbone and model.interpolator "
+                          "now, e.g. model.backbone.feature_dim=64 model.interpolator.n_blocks=4")
+    if "lr" in legacy and optimizer is not None:
+        raise ConfigError("neuromorph: model.lr is model.optimizer.lr now, e.g. model.optimizer.lr=3e-4")
+    if network:
         backbone = EdgeConvBackbone(**network)
-    if interpolator is None:
         interpolator = {k: network[k] for k in ("hidden_channels", "n_blocks", "pool") if k in network}
-    if "lr" in legacy and optimizer is None:
+    if "lr" in legacy:
         optimizer = adam(float(legacy["lr"]))
     if "eval_times" in legacy:
         interp_times = legacy["eval_times"]

@@ -460,6 +460,12 @@ def test_backbone_and_optimizer_nodes_are_selectable(tmp_path):
     old = _compose([*base, "+model.eval_times=[0.0,1.0]"])
     with pytest.warns(UserWarning, match="eval_times"):
         assert instantiate(old.model, _convert_="object").interp_times == (0.0, 1.0)
+    # the old network / lr keys next to the new nodes would be ignored: an error naming the new keys
+    for override, message in (("+model.feature_dim=64", "model.backbone.feature_dim"),
+                              ("+model.lr=1e-3", "model.optimizer.lr")):
+        with pytest.warns(UserWarning), pytest.raises(ConfigError, match=message):
+            NeuroMorph(**instantiate(_compose([*base, override]).model, _convert_="object",
+                                     _target_="builtins.dict"))
 
 
 def test_default_loss_agrees_with_the_loss_config(pair):
