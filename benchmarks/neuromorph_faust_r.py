@@ -77,7 +77,7 @@ GEODESIC_MAP_OVERRIDES = tuple(
     "callbacks.neuromorph_T.milestones=[[0,0],[8,1]]",
     "callbacks.neuromorph_lambda_geo.milestones=[[0,50.0],[8,0.0]]",
     "model.map_gradient=geodesic",
-    "model.lr=1.0e-3",
+    "model.optimizer.lr=1.0e-3",
 )
 #: ``--variant``: training overrides and default results file.
 VARIANTS = {
@@ -137,8 +137,7 @@ def interpolation_pair(model, x, y) -> dict[str, float]:
         wx, _ = model._working(x)
         wy, _ = model._working(y)
         edges_x = undirected_edges(wx.faces, wx.shape.n_verts)
-        feat_x = model.feature_net(wx.verts, wx.faces, edges_x)
-        feat_y = model.feature_net(wy.verts, wy.faces, undirected_edges(wy.faces, wy.shape.n_verts))
+        feat_x, feat_y = model.features(wx, edges_x), model.features(wy)
         p2p, _ = hard_maps(feat_x, feat_y, normalize=False, chunk_size=model.match_chunk_size)
         pi_y = model._soft_target(feat_x, feat_y, wy.verts)
         frames = model.interpolator.interpolate(wx.verts, pi_y, edges_x, times)

@@ -121,7 +121,7 @@ def run(args) -> dict:
     for variant in ("published", "geodesic", "geodesic_then_published"):
         torch.manual_seed(args.seed)
         mode = "all" if variant == "published" else "geodesic"
-        model = NeuroMorph(query_resolution=args.resolution, augment=dict(remesh=False, rotate=False), lr=args.lr,
+        model = NeuroMorph(query_resolution=args.resolution, augment=dict(remesh=False, rotate=False),
                            map_gradient=mode, seed=args.seed)
         optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
         augmented = [model.augmenter(pairs[k], None, geodesics=True) for k in range(len(pairs))]

@@ -85,7 +85,7 @@ TARGET_SECONDS = {0: 0.5, 7: 1.7}
 #: Stages timed inside a step (forward parts, then the whole backward pass).
 STAGES = ("feature_nets_fwd", "softmax_fwd", "interpolator_fwd", "registration_arap_fwd", "geodesic_fwd",
           "backward")
-#: Frame times of a query (NeuroMorph.match's default eval_times, configs/model/neuromorph.yaml).
+#: Frame times of a query (NeuroMorph.match's default interp_times, configs/model/neuromorph.yaml).
 QUERY_TIMES = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: glibc settings that keep freed large blocks instead of returning them to the OS (no page faults on reuse).
 GLIBC_NO_MMAP_ENV = {"MALLOC_MMAP_THRESHOLD_": str(2**34), "MALLOC_TRIM_THRESHOLD_": str(2**34)}

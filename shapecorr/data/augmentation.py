@@ -1,6 +1,6 @@
 """Training-time augmentation of shape pairs: remeshing to random resolutions and a shared rotation.
 
-NeuroMorph (Eisenberger et al., CVPR 2021; docs/neuromorph.md §2) trains on pairs whose shapes are remeshed
+NeuroMorph (Eisenberger et al., CVPR 2021; docs/neuromorph.md) trains on pairs whose shapes are remeshed
 independently to random resolutions (every resolution 200..2000 of its 2000-vertex meshes, one drawn
 uniformly per shape and step) and rotated by the *same* random angle about the up axis (y for FAUST).
 
@@ -32,22 +32,31 @@ decimated).
 
 Rotation: an angle drawn uniformly in [0, 2 pi) about the configured axis, applied to both shapes (after
 the geodesics are looked up, which do not depend on it).
+
+On the data side. :class:`AugmentedPairDataset` applies a :class:`PairAugmenter` to the training pairs inside
+the dataset, so that DataLoader worker processes remesh and compute geodesics in parallel with training. Its
+keys are :class:`SampleKey` ``(epoch, position, index)`` (the data module's training sampler yields them):
+a step's draws come from a generator seeded with ``(seed, epoch, position)``, ``position`` being the step's
+place in the epoch (the batch index), so a run resumed mid-epoch, whose sampler starts at the same position,
+draws what the uninterrupted run would have drawn, and the draws are those of the former in-model
+augmentation (``default_rng([seed, epoch, batch index])``).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import igl
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
+from torch.utils.data import Dataset
 
 from shapecorr.data.cache import ShapeCache, content_hash
-from shapecorr.data.datasets import PairSample, ShapeSample
+from shapecorr.data.datasets import PairDataset, PairSample, ShapeSample
 from shapecorr.data.operators import geodesics_cached
 from shapecorr.data.shape import Shape, triangle_areas
 from shapecorr.errors import ConfigError, NumericalError
@@ -60,11 +69,11 @@ from shapecorr.geometry.remeshing import (
 
 #: Version of the cached remeshes (bump when remeshing or the stored correspondence changes).
 REMESH_CACHE_VERSION = 1
-#: NeuroMorph remeshing augmentation: every resolution from 200 to 2000 vertices (docs/neuromorph.md §2).
+#: NeuroMorph remeshing augmentation: every resolution from 200 to 2000 vertices (NeuroMorph paper and code).
 DEFAULT_RESOLUTION_RANGE = (200, 2000)
 #: Remeshes per shape (project choice: a finite pool keeps the cache bounded, see the module docstring).
 DEFAULT_REMESH_VARIANTS = 8
-#: NeuroMorph FAUST/SHREC'20 rotation axis: y (axis = 1; MANO uses z), docs/neuromorph.md §2.
+#: NeuroMorph FAUST/SHREC'20 rotation axis: y (axis = 1; MANO uses z), NeuroMorph code.
 DEFAULT_UP_AXIS = "y"
 AXES = {"x": 0, "y": 1, "z": 2}
 #: Geodesic method for remeshed shapes (shapecorr.geometry.geodesics; the original used fast marching).
@@ -387,6 +396,16 @@ class AugmentedPair:
     remeshed_y: Remeshed | None
     rotation: torch.Tensor
 
+    @property
+    def name(self) -> str:
+        return self.pair.name
+
+    def to(self, device: torch.device | str) -> "AugmentedPair":
+        """Copy with the pair and the geodesic matrices on ``device`` (the remeshes stay numpy)."""
+        move = lambda t: None if t is None else t.to(device)  # noqa: E731
+        return replace(self, pair=self.pair.to(device), dist_x=move(self.dist_x), dist_y=move(self.dist_y),
+                       rotation=self.rotation.to(device))
+
 
 def _geometry_only(sample: ShapeSample) -> ShapeSample:
     """CPU copy of a sample without its eigenbasis and descriptors (augmented shapes carry none)."""
@@ -489,3 +508,59 @@ class PairAugmenter:
             rotation = rotation_about_axis(float(rng.uniform(0.0, 2.0 * math.pi)), self.config.axis)
             samples = [rotate_sample(s, rotation) for s in samples]
         return AugmentedPair(PairSample(*samples), dists[0], dists[1], remeshes[0], remeshes[1], rotation)
+
+
+# -- on the data side ----------------------------------------------------------------------------------------
+class SampleKey(NamedTuple):
+    """Key of an augmented training sample: epoch, place in the epoch (batch index), pair index."""
+
+    epoch: int
+    position: int
+    index: int
+
+
+def step_rng(seed: int, epoch: int, position: int) -> np.random.Generator:
+    """Generator of one training step's augmentation draws, seeded by ``(seed, epoch, position)``."""
+    return np.random.default_rng([int(seed), int(epoch), int(position)])
+
+
+class AugmentedPairDataset(Dataset):
+    """Training pairs augmented inside the dataset (in DataLoader workers), see the module docstring.
+
+    Parameters
+    ----------
+    pairs : PairDataset
+    augmenter : PairAugmenter
+        Its ``seed`` seeds the draws.
+    geodesics : bool or callable(epoch) -> bool
+        Whether the samples of an epoch carry geodesic matrices (e.g. a function of the epochs
+        where the geodesic loss is on; it must pickle, for worker processes).
+
+    Items: ``dataset[SampleKey(epoch, position, index)]`` -> :class:`AugmentedPair` of pair ``index`` with the
+    draws of ``(seed, epoch, position)``; a plain int ``k`` stands for ``SampleKey(epoch, k, k)`` with the
+    dataset's :attr:`epoch` (set by :meth:`set_epoch`; for samplers that do not yield keys, e.g. a plain
+    sequential one).
+    """
+
+    def __init__(self, pairs: PairDataset, augmenter: PairAugmenter, geodesics: bool | Callable[[int], bool] = True):
+        self.pairs = pairs
+        self.augmenter = augmenter
+        self.geodesics = geodesics
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def wants_geodesics(self, epoch: int) -> bool:
+        return bool(self.geodesics(epoch) if callable(self.geodesics) else self.geodesics)
+
+    def __getitem__(self, key: SampleKey | int) -> AugmentedPair:
+        epoch, position, index = (key if isinstance(key, tuple) else (self.epoch, int(key), int(key)))
+        rng = step_rng(self.augmenter.seed, epoch, position)
+        return self.augmenter(self.pairs[int(index)], rng, geodesics=self.wants_geodesics(epoch))
+
+    def names(self, k: int) -> tuple[str, str]:
+        return self.pairs.names(k)

@@ -9,12 +9,13 @@ from __future__ import annotations
 import os
 from dataclasses import fields
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import pytorch_lightning as pl
 import torch
-from torch.utils.data import DataLoader, Sampler
+from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 
+from shapecorr.data.augmentation import AugmentedPair, SampleKey
 from shapecorr.data.datasets import PairDataset, PairSample, ShapeDataset
 from shapecorr.data.operators import OperatorConfig
 from shapecorr.data.operators import plain_container as _plain
@@ -47,12 +48,15 @@ class ResumableShuffleSampler(Sampler[int]):
 
     Lightning calls :meth:`set_epoch` before each epoch; :meth:`resume_at` makes the next iteration skip the
     first ``skip`` indices of an epoch's permutation, so a run resumed from a mid-epoch checkpoint sees exactly
-    the pairs the uninterrupted run would have seen next. ``len`` stays the full epoch length.
+    the pairs the uninterrupted run would have seen next. ``len`` stays the full epoch length. With
+    ``keys=True`` it yields :class:`~shapecorr.data.augmentation.SampleKey` ``(epoch, position, index)`` instead
+    of the index (for datasets whose items depend on the epoch and the step, e.g. augmented training pairs).
     """
 
-    def __init__(self, n: int, seed: int = 0):
+    def __init__(self, n: int, seed: int = 0, keys: bool = False):
         self.n = int(n)
         self.seed = int(seed)
+        self.keys = bool(keys)
         self.epoch = 0
         self._skip = 0
 
@@ -73,7 +77,23 @@ class ResumableShuffleSampler(Sampler[int]):
 
     def __iter__(self):
         skip, self._skip = self._skip, 0
-        return iter(self.permutation(self.epoch)[skip:])
+        order = self.permutation(self.epoch)[skip:]
+        if self.keys:
+            return iter(SampleKey(self.epoch, skip + k, i) for k, i in enumerate(order))
+        return iter(order)
+
+
+class KeyedDistributedSampler(DistributedSampler):
+    """A rank's shard of the shuffled indices (Lightning's ``DistributedSampler`` order), as
+    :class:`~shapecorr.data.augmentation.SampleKey` ``(epoch, position in the shard, index)``.
+
+    Used for datasets whose items depend on the epoch and the step (augmented training pairs) under several
+    ranks; being a ``DistributedSampler``, Lightning keeps it (and calls its ``set_epoch``) instead of replacing
+    it. Resumption restarts the epoch, as for Lightning's own sampler.
+    """
+
+    def __iter__(self):
+        return iter(SampleKey(self.epoch, k, int(i)) for k, i in enumerate(super().__iter__()))
 
 
 def _resume_position(trainer) -> tuple[int, int]:
@@ -155,6 +175,17 @@ class ShapePairDataModule(pl.LightningDataModule):
         self.shuffle_seed = shuffle_seed
         self._shapes: dict[str, ShapeDataset] = {}
         self._pairs: dict[str, PairDataset] = {}
+        self._train_wrapper: Callable[[PairDataset], Dataset] | None = None
+
+    def augment_training(self, wrapper: Callable[[PairDataset], Dataset] | None) -> None:
+        """Serve the training pairs through ``wrapper(pairs)`` (a model's data-side augmentation), or plainly (None).
+
+        The wrapped dataset is indexed by :class:`~shapecorr.data.augmentation.SampleKey` ``(epoch, position,
+        index)`` (:class:`ResumableShuffleSampler` with ``keys=True``; under several ranks
+        :class:`KeyedDistributedSampler`, position = place in the rank's shard); it runs in the DataLoader workers. Call before the training
+        loader is built (a model does it in its ``setup`` hook).
+        """
+        self._train_wrapper = wrapper
 
     def with_operators(self, request: Mapping[str, Mapping[str, Any]] | None = None, **changes: Any) -> None:
         """Add an operator request (e.g. a model's ``required_operators``) to the data; call before setup.
@@ -222,15 +253,23 @@ class ShapePairDataModule(pl.LightningDataModule):
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         sampler, generator = None, None
+        dataset = self.pairs(split)
+        wrapped = split == "train" and self._train_wrapper is not None
+        if wrapped:
+            dataset = self._train_wrapper(dataset)
         if shuffle and (self.trainer is None or self.trainer.world_size == 1):
             # (seed, epoch)-determined order that can restart mid-epoch: resumed runs see the same pairs
-            sampler = ResumableShuffleSampler(len(self.pairs(split)), self.shuffle_seed)
+            sampler = ResumableShuffleSampler(len(dataset), self.shuffle_seed, keys=wrapped)
             sampler.resume_at(*_resume_position(self.trainer))
+        elif shuffle and wrapped:
+            # several ranks, items keyed by the epoch: Lightning's shuffling, with keys
+            sampler = KeyedDistributedSampler(dataset, num_replicas=self.trainer.world_size,
+                                              rank=self.trainer.global_rank, shuffle=True, seed=self.shuffle_seed)
         elif shuffle:
             # several ranks: Lightning's DistributedSampler shuffles per (seed, epoch); resumption restarts the epoch
             generator = torch.Generator().manual_seed(self.shuffle_seed)
         return DataLoader(
-            self.pairs(split),
+            dataset,
             batch_size=1,
             shuffle=shuffle and sampler is None,
             sampler=sampler,
@@ -250,6 +289,6 @@ class ShapePairDataModule(pl.LightningDataModule):
         return self._loader("test", shuffle=False)
 
     def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
-        if isinstance(batch, PairSample):
+        if isinstance(batch, (PairSample, AugmentedPair)):
             return batch.to(device)
         return super().transfer_batch_to_device(batch, device, dataloader_idx)

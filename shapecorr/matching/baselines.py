@@ -9,6 +9,7 @@ All implement the matcher protocol of :mod:`shapecorr.matching.result` and are u
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,7 @@ DESCRIPTOR_NAMES = ("wks", "hks", "shot")
 DESCRIPTOR_NORMALIZATIONS = ("none", "l2", "standardize")
 #: Rows of x processed at once by the brute-force nearest-neighbour search (bounds memory to chunk * n_y).
 NN_CHUNK_ROWS = 4096
-#: Default frames of LinearBlend.match: the evaluation times of NeuroMorph (issue 6, ``eval_times``).
+#: Default frames of LinearBlend.match: the frame times of NeuroMorph (``interp_times``, as in evaluate.py).
 LINEAR_BLEND_TIMES = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
@@ -205,19 +206,25 @@ class LinearBlend(torch.nn.Module):
     matcher : Matcher
         Any object with ``match(x, y) -> MatchResult``; its ``required_operators`` and
         ``needs_ground_truth`` are passed through.
-    times : sequence of float
+    interp_times : sequence of float
         Frames of :meth:`match` (default :data:`LINEAR_BLEND_TIMES`); :meth:`interpolate` takes any times.
+    times : sequence of float, optional
+        The old name of ``interp_times`` (accepted with a warning).
     """
 
-    def __init__(self, matcher, times=LINEAR_BLEND_TIMES):
+    def __init__(self, matcher, interp_times=LINEAR_BLEND_TIMES, times=None):
         super().__init__()
+        if times is not None:
+            warnings.warn("LinearBlend: the option `times` is now `interp_times` (model.interp_times=...), the "
+                          "name evaluate.py and NeuroMorph use", UserWarning, stacklevel=2)
+            interp_times = times
         if not callable(getattr(matcher, "match", None)):
             raise ConfigError(f"LinearBlend wraps a matcher (with a match(x, y) method), got {type(matcher).__name__}")
-        values = [float(t) for t in times]
+        values = [float(t) for t in interp_times]
         if not values or not all(np.isfinite(values)):
-            raise ConfigError(f"LinearBlend times must be a non-empty list of finite numbers, got {values}")
+            raise ConfigError(f"LinearBlend interp_times must be a non-empty list of finite numbers, got {values}")
         self.matcher = matcher
-        self.times = tuple(values)
+        self.interp_times = tuple(values)
 
     @property
     def required_operators(self) -> dict:
@@ -259,5 +266,5 @@ class LinearBlend(torch.nn.Module):
                            extras=dict(result.extras))
 
     def match(self, x, y) -> MatchResult:
-        """:meth:`interpolate` at the default frames ``times``."""
-        return self.interpolate(x, y, torch.tensor(self.times))
+        """:meth:`interpolate` at the default frames ``interp_times``."""
+        return self.interpolate(x, y, torch.tensor(self.interp_times))

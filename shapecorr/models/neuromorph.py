@@ -3,8 +3,9 @@
 Eisenberger, Novotny, Kerchenbaum, Labatut, Neverova, Cremers, Vedaldi, CVPR 2021 (docs/neuromorph.md). The
 module is thin; the pieces live elsewhere:
 
-* features: :class:`~shapecorr.nn.neuromorph.NeuroMorphFeatureNet` on ``[xyz, vertex normal]`` of each shape
-  (unit-length 128-D rows);
+* features: an injected :class:`~shapecorr.nn.backbone.Backbone` (``model/backbone`` config node; published:
+  :class:`~shapecorr.nn.edgeconv_backbone.EdgeConvBackbone`, the EdgeConv feature net on ``[xyz, vertex
+  normal]`` of each shape, unit-length 128-D rows);
 * soft maps both ways: :func:`~shapecorr.matching.softmax.softmax_soft_maps` (row softmax of ``sigma``
   times the cosine similarities, published sigma = 100);
 * interpolation: :class:`~shapecorr.nn.neuromorph.NeuroMorphInterpolator`, ``X(t) = x + t d(x, Pi y - x,
@@ -13,16 +14,20 @@ module is thin; the pieces live elsewhere:
   registration 1, ARAP 1 over the sequence ``[x, X(t_1), ..., X(1)]``, geodesic distortion 50). Its terms
   receive ``verts_x_deformed`` (X(1)), ``verts_y``, ``pi_x_to_y``, ``pi_y_to_x``, ``frames``, ``edges``,
   ``edge_weights`` and, while the geodesic term is active, ``dist_x`` and ``dist_y``;
-* schedules (published: T 0 -> 1 -> 3 -> 7 and lambda_geo 50 -> 0, docs/neuromorph.md §7) are Lightning callbacks
+* TensorBoard drawing of the first validation pair's sequence: :func:`shapecorr.viz.interpolation.log_interpolation`;
+* schedules (published: T 0 -> 1 -> 3 -> 7 and lambda_geo 50 -> 0, NeuroMorph code) are Lightning callbacks
   (:mod:`shapecorr.models.schedules`) configured next to the model; the module only exposes the settable
   :attr:`NeuroMorph.n_intermediate` and the loss weights.
 
 Training data (one pair per step, gradients accumulated by the Trainer, published 16 pairs): each shape is
 remeshed to a resolution drawn from its fixed pool and both are rotated by one random angle about the up axis
 (:class:`~shapecorr.data.augmentation.PairAugmenter`, ``augment`` options; remeshes and geodesic matrices are
-cached with the shape cache, geodesics only looked up while the geodesic term has a non-zero weight). The
-draws are seeded by ``(seed, epoch, batch index)``, so a resumed run sees the augmentations of the
-uninterrupted one. Without remeshing, shapes larger than ``query_resolution`` are trained on their
+cached with the shape cache, geodesics only looked up in the epochs where the geodesic term has a non-zero
+weight). The augmentation runs on the data side: in its ``setup`` hook the module hands the data module an
+:class:`~shapecorr.data.augmentation.AugmentedPairDataset` wrapper (DataLoader workers remesh in parallel);
+a plain :class:`~shapecorr.data.datasets.PairSample` batch (another loader, direct calls) is augmented in
+``training_step`` with the same draws. The draws are seeded by ``(seed, epoch, batch index)``, so a resumed
+run sees the augmentations of the uninterrupted one. Without remeshing, shapes larger than ``query_resolution`` are trained on their
 working-resolution remesh (the original trained on 2000-vertex FAUST_r meshes).
 
 Queries (:meth:`NeuroMorph.match`, :meth:`NeuroMorph.interpolate`) run on the shapes as given, or, with
@@ -37,7 +42,7 @@ networks for ``T + 1`` time steps. Queries never hold a full soft map: ``match_c
 at a time (the interpolation target ``Pi y`` is accumulated per chunk), so full-resolution queries of 10k
 vertices need ~160 MB for the similarities instead of 400 MB per soft map.
 
-Decisions on the original's [BUG?] items (docs/neuromorph.md §8): global max-pool over vertices
+Decisions on the original's [BUG?] items (docs/neuromorph.md): global max-pool over vertices
 (``pool="global"``; original: per-vertex max over channels, ``"channel"``), detached ARAP rotations and the
 "both-sides" ARAP energy (loss config; original: differentiated SVD, "average" of the two rotations), no
 rotation at test time (the original rotated test pairs randomly as well).
@@ -51,26 +56,36 @@ geodesic term alone fits it. ``map_gradient="geodesic"`` lets only the geodesic 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import inspect
 import warnings
 from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+import hydra
 import numpy as np
 import torch
-from matplotlib.figure import Figure
 
 from shapecorr.data.augmentation import (
     AugmentationConfig,
+    AugmentedPair,
+    AugmentedPairDataset,
     PairAugmenter,
     Remeshed,
     cached_remesh,
     remeshed_sample,
+    step_rng,
 )
 from shapecorr.data.cache import ShapeCache, content_hash, default_cache_root
 from shapecorr.errors import ConfigError, NumericalError
-from shapecorr.eval.protocol import score_deformation
+from shapecorr.eval.protocol import (
+    UNIT_TIME,
+    check_interp_times,
+    score_deformation,
+    unit_time_index,
+)
 from shapecorr.geometry.mesh_graph import undirected_edges
 from shapecorr.losses.arap import NEUROMORPH_DISPLACEMENT_WEIGHT, arap_sequence_loss
 from shapecorr.losses.geodesic_distortion import geodesic_distortion_loss
@@ -83,46 +98,40 @@ from shapecorr.matching.softmax import (
     hard_maps,
     softmax_soft_maps,
 )
-from shapecorr.models.base import CorrespondenceModule
+from shapecorr.models.base import CorrespondenceModule, adam, build_optimizers
+from shapecorr.models.schedules import LossWeightSchedule
+from shapecorr.nn.backbone import Backbone
 from shapecorr.nn.edgeconv import DEFAULT_HIDDEN, DEFAULT_N_BLOCKS
-from shapecorr.nn.neuromorph import (
-    DEFAULT_FEATURE_DIM,
-    NeuroMorphFeatureNet,
-    NeuroMorphInterpolator,
-    interpolation_times,
-)
-from shapecorr.viz.render import (
-    DEFAULT_VIEW,
-    PANEL_SIZE,
-    RENDER_DPI,
-    coordinate_colors,
-    draw_mesh,
-    figure_to_rgb,
-)
-from shapecorr.viz.tensorboard import summary_writer
+from shapecorr.nn.edgeconv_backbone import DEFAULT_POOL, EdgeConvBackbone
+from shapecorr.nn.neuromorph import NeuroMorphInterpolator, interpolation_times
+from shapecorr.viz.interpolation import log_interpolation
 
-#: NeuroMorph optimizer: Adam, learning rate 1e-4, no scheduler (docs/neuromorph.md §7).
+#: NeuroMorph optimizer: Adam, learning rate 1e-4, no scheduler (NeuroMorph paper, CVPR 2021, and its released
+#: training script); configs/model/optimizer/adam.yaml.
 DEFAULT_LR = 1e-4
-#: Published loss weights (docs/neuromorph.md §6): E_align 1, E_arap 1, E_geo 50 (the latter scheduled to 0).
+#: Published loss weights (NeuroMorph paper, CVPR 2021): E_align 1, E_arap 1, E_geo 50 (the latter scheduled to 0).
 DEFAULT_LOSS_WEIGHTS = {"registration": 1.0, "arap": 1.0, "geo": 50.0}
 #: Name of the loss term needing geodesic matrices (their lookup is skipped while its weight is 0).
 DEFAULT_GEO_TERM = "geo"
 #: Frames returned by ``match`` (project choice: quarter steps from x to its image on y).
-DEFAULT_EVAL_TIMES = (0.0, 0.25, 0.5, 0.75, 1.0)
+DEFAULT_INTERP_TIMES = (0.0, 0.25, 0.5, 0.75, 1.0)
+#: Options of the interpolator network (NeuroMorph code: ResnetECPos, hidden 128, 5 EdgeConv layers; pool "global"
+#: is our decision, the original's is "channel").
+DEFAULT_INTERPOLATOR = {"hidden_channels": DEFAULT_HIDDEN, "n_blocks": DEFAULT_N_BLOCKS, "pool": DEFAULT_POOL}
 #: Query remeshes kept in memory (a validation set's worth; a few hundred kB each).
 QUERY_REMESH_LRU_SIZE = 64
 #: Deep Shells settings that configs/train.yaml and configs/debug/tiny.yaml passed to every model before they
 #: moved to configs/quick/<model>.yaml; NeuroMorph checkpoints written then carry them in their hyperparameters.
 #: They are dropped with a warning; any other unknown option is an error.
 LEGACY_CHECKPOINT_OPTIONS = frozenset({"num_samples", "val_refine_levels", "layer", "num_eigs"})
+#: NeuroMorph options of checkpoints written before the backbone, the optimizer and the frame-time name became
+#: config nodes (issue 12): ``feature_dim`` / ``hidden_channels`` / ``n_blocks`` / ``pool`` build the EdgeConv
+#: backbone (the last three also the interpolator), ``lr`` an Adam optimizer, ``eval_times`` is ``interp_times``.
+#: Mapped with a warning.
+LEGACY_NETWORK_OPTIONS = ("feature_dim", "hidden_channels", "n_blocks", "pool")
+LEGACY_RENAMED_OPTIONS = frozenset({*LEGACY_NETWORK_OPTIONS, "lr", "eval_times"})
 #: Which loss terms train the soft maps (and so the feature net), see :attr:`NeuroMorph.map_gradient`.
 MAP_GRADIENT_MODES = ("all", "geodesic")
-#: Time of the frame compared with the target in the interpolation metrics.
-UNIT_TIME = 1.0
-#: 8-bit color scale of TensorBoard's mesh plugin.
-COLOR_MAX = 255
-#: Gray level of the target panel of the interpolation strip.
-TARGET_GRAY = 0.7
 
 
 def default_loss() -> WeightedLoss:
@@ -135,6 +144,42 @@ def default_loss() -> WeightedLoss:
     })
 
 
+def _map_legacy_options(legacy: Mapping[str, Any], backbone, interpolator, optimizer, interp_times):
+    """Build the config nodes of a checkpoint written before they existed (see :data:`LEGACY_RENAMED_OPTIONS`)."""
+    renamed = sorted(set(legacy) & LEGACY_RENAMED_OPTIONS)
+    if not renamed:
+        return backbone, interpolator, optimizer, interp_times
+    warnings.warn(f"neuromorph: mapping old option(s) {renamed} to model.backbone (EdgeConv: feature_dim, "
+                  "hidden_channels, n_blocks, pool), model.interpolator (hidden_channels, n_blocks, pool), "
+                  "model.optimizer (lr) and model.interp_times (eval_times); checkpoints written before these "
+                  "became config nodes carry them", stacklevel=3)
+    network = {k: legacy[k] for k in LEGACY_NETWORK_OPTIONS if k in legacy}
+    if network and (backbone is not None or interpolator is not None):
+        # a config (not an old checkpoint) with both: the old keys would be silently ignored
+        raise ConfigError(f"neuromorph: {sorted(network)} are options of model.backbone and model.interpolator "
+                          "now, e.g. model.backbone.feature_dim=64 model.interpolator.n_blocks=4")
+    if "lr" in legacy and optimizer is not None:
+        raise ConfigError("neuromorph: model.lr is model.optimizer.lr now, e.g. model.optimizer.lr=3e-4")
+    if network:
+        backbone = EdgeConvBackbone(**network)
+        interpolator = {k: network[k] for k in ("hidden_channels", "n_blocks", "pool") if k in network}
+    if "lr" in legacy:
+        optimizer = adam(float(legacy["lr"]))
+    if "eval_times" in legacy:
+        interp_times = legacy["eval_times"]
+    return backbone, interpolator, optimizer, interp_times
+
+
+class _NonZeroAt:
+    """``epoch -> schedule(epoch) != 0`` of a loss-weight schedule (picklable, for data workers)."""
+
+    def __init__(self, schedule):
+        self.schedule = schedule
+
+    def __call__(self, epoch: int) -> bool:
+        return float(self.schedule(epoch)) != 0.0
+
+
 def _check_times(times, device: torch.device) -> torch.Tensor:
     t = torch.as_tensor(times, dtype=torch.float32).to(device)
     if t.ndim != 1 or t.numel() == 0:
@@ -145,25 +190,30 @@ def _check_times(times, device: torch.device) -> torch.Tensor:
 
 
 class NeuroMorph(CorrespondenceModule):
-    """NeuroMorph: feature net + softmax correspondence + interpolator (see the module docstring).
+    """NeuroMorph: feature backbone + softmax correspondence + interpolator (see the module docstring).
 
     Parameters
     ----------
+    backbone : Backbone or mapping, optional
+        The feature extractor (Hydra: the ``model/backbone`` node, published ``edgeconv``); a mapping is a
+        ``_target_`` config built here (what checkpoints store); default :class:`EdgeConvBackbone` with the
+        published options.
     loss : WeightedLoss, optional
         The training loss (Hydra: the ``loss`` group); default :func:`default_loss` (published). Not stored
         in the checkpoint's hyperparameters: a model loaded with ``load_from_checkpoint`` (evaluation) gets
         the default.
-    feature_dim, hidden_channels, n_blocks, pool
-        Network options (published: 128, 128, 5 EdgeConv layers; pool "global" is our decision, "channel"
-        the original's).
+    interpolator : mapping, optional
+        Options of the interpolator network :class:`~shapecorr.nn.neuromorph.NeuroMorphInterpolator`:
+        ``hidden_channels``, ``n_blocks``, ``pool`` (published 128, 5; pool "global" our decision).
+    optimizer, scheduler
+        Optimizer / LR-scheduler factories (``model/optimizer``, ``model/scheduler`` nodes, ``_partial_``);
+        default Adam 1e-4 (published), no scheduler. Not stored in the hyperparameters.
     sigma : float
         Softmax inverse temperature (published 100).
     n_intermediate : int
         Intermediate time steps T used in training now (published schedule 0, 1, 3, 7; set by a callback).
-    eval_times : sequence of float
-        Frames returned by :meth:`match`.
-    lr : float
-        Adam learning rate (published 1e-4).
+    interp_times : sequence of float
+        Frames returned by :meth:`match` (strictly increasing; ``evaluate.py interp_times=`` overrides them).
     map_gradient : {"all", "geodesic"}
         Which loss terms train the soft maps (and through them the feature net). "all" (published): every
         term, including registration and ARAP through the interpolator's input ``Pi y``. "geodesic": only the
@@ -191,19 +241,21 @@ class NeuroMorph(CorrespondenceModule):
         ``~/.cache/shapecorr``.
     seed : int
         Base seed of the augmentation draws and remesh pools.
+    **legacy_options
+        Options of older checkpoints (:data:`LEGACY_RENAMED_OPTIONS`: mapped with a warning;
+        :data:`LEGACY_CHECKPOINT_OPTIONS`: dropped with a warning); anything else is an error.
     """
 
     def __init__(
         self,
+        backbone: Backbone | Mapping[str, Any] | None = None,
         loss: WeightedLoss | None = None,
-        feature_dim: int = DEFAULT_FEATURE_DIM,
-        hidden_channels: int = DEFAULT_HIDDEN,
-        n_blocks: int = DEFAULT_N_BLOCKS,
-        pool: str = "global",
+        interpolator: Mapping[str, Any] | None = None,
+        optimizer=None,
+        scheduler=None,
         sigma: float = DEFAULT_SIGMA,
         n_intermediate: int = 0,
-        eval_times: Sequence[float] = DEFAULT_EVAL_TIMES,
-        lr: float = DEFAULT_LR,
+        interp_times: Sequence[float] = DEFAULT_INTERP_TIMES,
         map_gradient: str = "all",
         arap_edge_weight_scale: float | None = 1.0,
         geo_term: str = DEFAULT_GEO_TERM,
@@ -213,20 +265,38 @@ class NeuroMorph(CorrespondenceModule):
         match_chunk_size: int = DEFAULT_CHUNK_SIZE,
         cache_dir: str | None = None,
         seed: int = 0,
-        **unknown_options: Any,
+        **legacy_options: Any,
     ):
         super().__init__()
-        unknown = sorted(set(unknown_options) - LEGACY_CHECKPOINT_OPTIONS)
+        unknown = sorted(set(legacy_options) - LEGACY_CHECKPOINT_OPTIONS - LEGACY_RENAMED_OPTIONS)
         if unknown:
             # A clear message instead of instantiate's TypeError.
             raise ConfigError(f"neuromorph: unknown option(s) {unknown}")
-        if unknown_options:
-            warnings.warn(f"neuromorph: ignoring Deep Shells option(s) {sorted(unknown_options)}: they mean nothing "
+        dropped = sorted(set(legacy_options) & LEGACY_CHECKPOINT_OPTIONS)
+        if dropped:
+            warnings.warn(f"neuromorph: ignoring Deep Shells option(s) {dropped}: they mean nothing "
                           "to NeuroMorph (checkpoints written before configs/quick/ existed carry them)",
                           stacklevel=2)
-        self.save_hyperparameters(ignore=["loss", *unknown_options])
-        if not lr > 0:
-            raise ConfigError(f"neuromorph: lr must be positive, got {lr}")
+        backbone, interpolator, optimizer, interp_times = _map_legacy_options(
+            legacy_options, backbone, interpolator, optimizer, interp_times)
+        if isinstance(backbone, Mapping):
+            backbone = hydra.utils.instantiate(dict(backbone), _convert_="object")
+        if backbone is None:
+            backbone = EdgeConvBackbone()
+        if not isinstance(backbone, Backbone):
+            raise ConfigError(f"neuromorph: model.backbone must be a Backbone module (a _target_ node of "
+                              f"configs/model/backbone/), got {type(backbone).__name__}")
+        interpolator = {**DEFAULT_INTERPOLATOR, **dict(interpolator or {})}
+        bad = sorted(set(interpolator) - set(DEFAULT_INTERPOLATOR))
+        if bad:
+            raise ConfigError(f"neuromorph: unknown model.interpolator option(s) {bad}; allowed: "
+                              f"{sorted(DEFAULT_INTERPOLATOR)}")
+        self.save_hyperparameters(ignore=["loss", "backbone", "optimizer", "scheduler", *legacy_options])
+        # What load_from_checkpoint needs to rebuild the backbone (a _target_ node), when the backbone says it.
+        spec = getattr(backbone, "config", None)
+        self.hparams["backbone"] = spec() if callable(spec) else None
+        self.hparams["interpolator"] = interpolator
+        self.hparams["interp_times"] = list(interp_times)
         if not sigma > 0:
             raise ConfigError(f"neuromorph: sigma must be positive, got {sigma}")
         if arap_edge_weight_scale is not None and not arap_edge_weight_scale > 0:
@@ -238,13 +308,16 @@ class NeuroMorph(CorrespondenceModule):
             raise ConfigError(f"neuromorph: match_chunk_size must be >= 1, got {match_chunk_size}")
         if loss is not None and not isinstance(loss, WeightedLoss):
             raise ConfigError(f"neuromorph: loss must be a WeightedLoss, got {type(loss).__name__}")
-        self.feature_net = NeuroMorphFeatureNet(feature_dim, hidden_channels, n_blocks, pool)
-        self.interpolator = NeuroMorphInterpolator(hidden_channels, n_blocks, pool)
+        self.feature_net = backbone
+        self._backbone_takes_edges = "edges" in inspect.signature(backbone.forward).parameters
+        self.interpolator = NeuroMorphInterpolator(int(interpolator["hidden_channels"]),
+                                                   int(interpolator["n_blocks"]), str(interpolator["pool"]))
         self.loss = default_loss() if loss is None else loss
+        self.optimizer = adam(DEFAULT_LR) if optimizer is None else optimizer
+        self.scheduler = scheduler
         self.sigma = float(sigma)
         self.n_intermediate = n_intermediate
-        self.eval_times = tuple(float(t) for t in _check_times(list(eval_times), torch.device("cpu")).tolist())
-        self.lr = float(lr)
+        self.interp_times = check_interp_times(list(interp_times))
         self.map_gradient = map_gradient
         self.arap_edge_weight_scale = None if arap_edge_weight_scale is None else float(arap_edge_weight_scale)
         self.geo_term = str(geo_term)
@@ -258,6 +331,11 @@ class NeuroMorph(CorrespondenceModule):
         self._augmenter: PairAugmenter | None = None
         self._query_remeshes: OrderedDict[tuple[str, int], Remeshed] = OrderedDict()
         self._first_val_sequence = None
+
+    @property
+    def backbone(self) -> Backbone:
+        """The feature extractor (stored as ``feature_net``: parameter names of older checkpoints)."""
+        return self.feature_net
 
     # -- scheduled settings -------------------------------------------------------------------------------
     @property
@@ -306,7 +384,26 @@ class NeuroMorph(CorrespondenceModule):
 
     def step_rng(self, batch_idx: int) -> np.random.Generator:
         """Generator of one training step's augmentation, seeded by (seed, epoch, batch index)."""
-        return np.random.default_rng([self.seed, int(self.current_epoch), int(batch_idx)])
+        return step_rng(self.seed, int(self.current_epoch), int(batch_idx))
+
+    def geodesic_epochs(self):
+        """Whether a training epoch needs geodesic matrices: a picklable ``epoch -> bool`` for data workers.
+
+        From the trainer's :class:`~shapecorr.models.schedules.LossWeightSchedule` of the geodesic term when
+        there is one (published: epochs 0..299), else the term's current weight (a constant).
+        """
+        for callback in getattr(self._trainer, "callbacks", None) or []:
+            if isinstance(callback, LossWeightSchedule) and callback.term == self.geo_term \
+                    and callback.loss_attribute == "loss":
+                return _NonZeroAt(callback.schedule)
+        return self.lambda_geo != 0.0
+
+    def setup(self, stage: str) -> None:
+        """Before fitting: serve the training pairs augmented on the data side (in DataLoader workers)."""
+        datamodule = getattr(self._trainer, "datamodule", None)
+        if stage == "fit" and callable(getattr(datamodule, "augment_training", None)):
+            datamodule.augment_training(functools.partial(AugmentedPairDataset, augmenter=self.augmenter,
+                                                          geodesics=self.geodesic_epochs()))
 
     # -- building blocks ----------------------------------------------------------------------------------
     def forward_pair(self, x, y, times: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -326,9 +423,7 @@ class NeuroMorph(CorrespondenceModule):
             (hence the frames) are detached from the feature net; ``pi_x_to_y`` never is.
         """
         edges_x, counts_x = undirected_edges(x.faces, x.shape.n_verts, return_counts=True)
-        edges_y = undirected_edges(y.faces, y.shape.n_verts)
-        feat_x = self.feature_net(x.verts, x.faces, edges_x)
-        feat_y = self.feature_net(y.verts, y.faces, edges_y)
+        feat_x, feat_y = self.features(x, edges_x), self.features(y)
         pi, pi_inv = softmax_soft_maps(feat_x, feat_y, self.sigma, normalize=False)
         target = pi @ y.verts
         if self.map_gradient == "geodesic":
@@ -337,10 +432,25 @@ class NeuroMorph(CorrespondenceModule):
         return {"pi_x_to_y": pi, "pi_y_to_x": pi_inv, "soft_target": target, "frames": frames, "edges": edges_x,
                 "edge_counts": counts_x}
 
+    def features(self, sample, edges: torch.Tensor | None = None) -> torch.Tensor:
+        """Backbone features ``(n, C)`` of a sample; its undirected ``edges (E, 2)``, when the caller has them, go
+        to a backbone that takes them (:class:`EdgeConvBackbone`: saves recomputing them)."""
+        if edges is not None and self._backbone_takes_edges:
+            return self.feature_net(sample, edges=edges)
+        return self.feature_net(sample)
+
     # -- training -----------------------------------------------------------------------------------------
     def training_step(self, batch, batch_idx: int) -> torch.Tensor:
         use_geo = self.lambda_geo != 0.0
-        aug = self.augmenter(batch, self.step_rng(batch_idx), geodesics=use_geo)
+        if isinstance(batch, AugmentedPair):  # augmented on the data side (AugmentedPairDataset)
+            aug = batch
+        else:  # a plain pair (another loader, direct calls): the same draws here
+            aug = self.augmenter(batch, self.step_rng(batch_idx), geodesics=use_geo)
+        if use_geo and (aug.dist_x is None or aug.dist_y is None):
+            # the data side did not expect the geodesic term in this epoch (weights changed by hand): look them up
+            x_cpu, y_cpu = aug.pair.x.to("cpu"), aug.pair.y.to("cpu")
+            aug = dataclasses.replace(aug, dist_x=self.augmenter.distances(x_cpu),
+                                      dist_y=self.augmenter.distances(y_cpu))
         pair = aug.pair.to(self.device)
         x, y = pair.x, pair.y
         times = interpolation_times(self.n_intermediate, device=self.device)
@@ -371,7 +481,7 @@ class NeuroMorph(CorrespondenceModule):
         return total
 
     def configure_optimizers(self):
-        return torch.optim.Adam(self.parameters(), lr=self.lr)
+        return build_optimizers(self.parameters(), self.optimizer, self.scheduler)
 
     # -- queries ------------------------------------------------------------------------------------------
     def _working(self, sample):
@@ -421,9 +531,7 @@ class NeuroMorph(CorrespondenceModule):
         wx, rx = self._working(x)
         wy, ry = self._working(y)
         edges_x = undirected_edges(wx.faces, wx.shape.n_verts)
-        edges_y = undirected_edges(wy.faces, wy.shape.n_verts)
-        feat_x = self.feature_net(wx.verts, wx.faces, edges_x)
-        feat_y = self.feature_net(wy.verts, wy.faces, edges_y)
+        feat_x, feat_y = self.features(wx, edges_x), self.features(wy)
         p2p, p2p_inv = hard_maps(feat_x, feat_y, normalize=False, chunk_size=self.match_chunk_size)
         frames = self.interpolator.interpolate(wx.verts, self._soft_target(feat_x, feat_y, wy.verts), edges_x, t)
         # Carry back to the full resolution: x's vertices through their nearest remesh vertex (maps) and the
@@ -440,26 +548,25 @@ class NeuroMorph(CorrespondenceModule):
         return MatchResult(p2p=p2p, p2p_inv=p2p_inv, deformation=frames, times=t)
 
     def match(self, x, y) -> MatchResult:
-        """Point-to-point maps x -> y and y -> x, with the interpolation frames at ``eval_times``.
+        """Point-to-point maps x -> y and y -> x, with the interpolation frames at ``interp_times``.
 
         See :meth:`interpolate`.
         """
-        return self.interpolate(x, y, torch.tensor(self.eval_times))
+        return self.interpolate(x, y, torch.tensor(self.interp_times))
 
     # -- validation / test --------------------------------------------------------------------------------
     def _score_interpolation(self, batch, result: MatchResult, split: str) -> None:
-        """Log Chamfer distance of X(1) to y and conformal distortion of the frames with 0 <= t <= 1."""
-        times = result.times.detach().cpu()
-        keep = torch.nonzero((times >= 0) & (times <= UNIT_TIME)).flatten()
-        keep = keep[torch.argsort(times[keep])]
-        frames, kept_times = result.deformation[keep.to(result.deformation.device)], times[keep]
-        if not bool((kept_times == UNIT_TIME).any()):
+        """Log Chamfer distance of X(1) to y and conformal distortion of the frames with 0 <= t <= 1.
+
+        Times are matched with the evaluation protocol's tolerance (:func:`~shapecorr.eval.protocol.unit_time_index`,
+        :func:`~shapecorr.eval.protocol.score_deformation`); without a frame at t = 1 it is computed here.
+        """
+        frames, times = result.deformation, result.times.detach().cpu()
+        if unit_time_index(times) is None:
             extra = self.interpolate(batch.x, batch.y, torch.tensor([UNIT_TIME]))
-            frames = torch.cat((frames, extra.deformation))
-        else:
-            last = int(torch.nonzero(kept_times == UNIT_TIME)[0, 0])
-            frames = frames[: last + 1]
-        scores = score_deformation(frames, batch.x, batch.y)
+            frames = torch.cat((frames, extra.deformation.to(frames)))
+            times = torch.cat((times, extra.times.detach().cpu()))
+        scores = score_deformation(frames, batch.x, batch.y, times=times)
         log = dict(batch_size=1, on_epoch=True, on_step=False, sync_dist=True)
         for key in ("chamfer", "chamfer_one_sided", "deformation_conformal_distortion", "volume_change"):
             if scores.get(key) is not None:
@@ -484,60 +591,3 @@ class NeuroMorph(CorrespondenceModule):
         batch, result = self._first_val_sequence
         log_interpolation(self.logger, result.deformation, batch.x.faces, result.times, batch.y.verts, batch.y.faces,
                           step=self.global_step)
-
-
-# -- TensorBoard: interpolation sequences ---------------------------------------------------------------------
-def interpolation_strip_figure(frames, faces, times, verts_y=None, faces_y=None, view=DEFAULT_VIEW) -> Figure:
-    """One panel per frame (colored by the coordinates of the first frame), then the target if given.
-
-    Parameters
-    ----------
-    frames : (T, n, 3) float
-    faces : (f, 3) int
-    times : (T,) float
-    verts_y : (n_y, 3) float, optional
-    faces_y : (f_y, 3) int, optional
-    view : (elevation, azimuth, vertical axis)
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-    """
-    frames = torch.as_tensor(frames).detach().cpu().numpy()
-    times = torch.as_tensor(times).detach().cpu().numpy().reshape(-1)
-    if frames.ndim != 3 or frames.shape[0] != times.shape[0]:
-        raise ConfigError(f"frames (T, n, 3) and times (T,) do not match: {frames.shape}, {times.shape}")
-    colors = coordinate_colors(frames[0])
-    panels = [(f, faces, colors, f"t = {t:.2f}") for f, t in zip(frames, times)]
-    if verts_y is not None:
-        vy = torch.as_tensor(verts_y).detach().cpu().numpy()
-        panels.append((vy, faces_y, np.full((vy.shape[0], 3), TARGET_GRAY), "target"))
-    fig = Figure(figsize=(PANEL_SIZE[0] * len(panels), PANEL_SIZE[1]), dpi=RENDER_DPI)
-    for k, (v, f, c, title) in enumerate(panels):
-        ax = fig.add_subplot(1, len(panels), k + 1, projection="3d")
-        draw_mesh(ax, v, torch.as_tensor(f).detach().cpu().numpy(), c, view=view, title=title)
-    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.9, wspace=0.0)
-    return fig
-
-
-def log_interpolation(logger, frames, faces, times, verts_y=None, faces_y=None, step: int = 0,
-                      tag: str = "val/interpolation") -> bool:
-    """Log an interpolation sequence as TensorBoard meshes (``<tag>/t<k>``) and a rendered strip image.
-
-    Returns
-    -------
-    bool
-        Whether something was logged (False without a TensorBoard logger).
-    """
-    writer = summary_writer(logger)
-    if writer is None:
-        return False
-    frames_t = torch.as_tensor(frames).detach().cpu().float()
-    faces_t = torch.as_tensor(faces).detach().cpu().to(torch.int32)
-    colors = torch.as_tensor(np.round(coordinate_colors(frames_t[0].numpy()) * COLOR_MAX).astype(np.uint8))
-    for k in range(frames_t.shape[0]):
-        writer.add_mesh(f"{tag}/t{k:02d}", vertices=frames_t[k][None], colors=colors[None], faces=faces_t[None],
-                        global_step=step)
-    fig = interpolation_strip_figure(frames_t, faces_t, times, verts_y, faces_y)
-    writer.add_image(f"{tag}/strip", figure_to_rgb(fig), global_step=step, dataformats="HWC")
-    return True

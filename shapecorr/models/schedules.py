@@ -1,7 +1,7 @@
 """Epoch-driven, piecewise-constant schedules of a LightningModule's settings, as Lightning callbacks.
 
 A schedule is a list of ``[epoch, value]`` milestones: the value holds from its epoch until the next
-milestone. NeuroMorph's published schedule (docs/neuromorph.md §7), for example, is::
+milestone. NeuroMorph's published schedule (its released code, SettingsFaust), for example, is::
 
     callbacks:
       neuromorph_T:                       # intermediate time steps of the interpolation

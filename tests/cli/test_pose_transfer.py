@@ -91,7 +91,7 @@ def test_unit_time_is_added_but_not_written(meshes, tmp_path):
 def test_default_frames(meshes, tmp_path):
     evaluate(_cfg(meshes, tmp_path / "a", *BLEND))
     assert read_times(tmp_path / "a" / "pose_transfer" / "A__B").tolist() == [0.0, 0.25, 0.5, 0.75, 1.0]  # config
-    evaluate(_cfg(meshes, tmp_path / "b", *BLEND, "interp_times=null", "model.times=[0.0,0.2,1.0]"))
+    evaluate(_cfg(meshes, tmp_path / "b", *BLEND, "interp_times=null", "model.interp_times=[0.0,0.2,1.0]"))
     assert read_times(tmp_path / "b" / "pose_transfer" / "A__B").tolist() == [0.0, 0.2, 1.0]  # the matcher's
 
 

@@ -176,7 +176,7 @@ def test_neuromorph_geodesic_map_variant_composes(nm_bench, tmp_path, compose_co
     cmds = nm_bench.launch_commands(tmp_path / "run", "/data/FAUST_r", overrides)
     train_args = [a for a in cmds["train"][2:] if not a.startswith("hydra.")]
     cfg = compose_config("train", [*train_args, f"paths.output_dir={tmp_path}"])
-    assert cfg.model.map_gradient == "geodesic" and cfg.model.lr == pytest.approx(1e-3)
+    assert cfg.model.map_gradient == "geodesic" and cfg.model.optimizer.lr == pytest.approx(1e-3)
     assert cfg.trainer.max_time == "00:01:55:00" and cfg.trainer.accumulate_grad_batches == 4
     assert [list(m) for m in cfg.callbacks.neuromorph_lambda_geo.milestones] == [[0, 50.0], [8, 0.0]]
     model = instantiate(cfg.model, _convert_="object")

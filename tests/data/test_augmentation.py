@@ -221,3 +221,76 @@ def test_invalid_options_raise_config_error(options):
 def test_random_draws_need_a_generator(pair, tmp_path):
     with pytest.raises(ConfigError):
         PairAugmenter({}, ShapeCache(tmp_path))(pair[0], None)
+
+
+# -- on the data side ----------------------------------------------------------------------------------------
+class _OnePair:
+    """A PairDataset stand-in holding one pair (picklable)."""
+
+    def __init__(self, pair):
+        self.pair = pair
+
+    def __len__(self):
+        return 1
+
+    def __getitem__(self, k):
+        return self.pair
+
+    def names(self, k):
+        return self.pair.x.name, self.pair.y.name
+
+
+def test_augmented_pair_dataset_draws_per_epoch_and_position(pair, tmp_path):
+    import pickle
+
+    from shapecorr.data.augmentation import AugmentedPairDataset, SampleKey, step_rng
+
+    batch, _ = pair
+    augmenter = PairAugmenter(dict(resolution=[200, 400], variants=2), ShapeCache(tmp_path), seed=3)
+    dataset = AugmentedPairDataset(_OnePair(batch), augmenter, geodesics=lambda epoch: epoch < 1)
+    a = dataset[SampleKey(0, 5, 0)]
+    expected = augmenter(batch, step_rng(3, 0, 5), geodesics=True)
+    assert a.pair.x.shape.n_verts == expected.pair.x.shape.n_verts and torch.equal(a.rotation, expected.rotation)
+    torch.testing.assert_close(a.pair.x.verts, expected.pair.x.verts)
+    assert a.dist_x is not None and a.dist_x.shape == (a.pair.x.shape.n_verts,) * 2
+    later = dataset[SampleKey(1, 5, 0)]  # another epoch: other draws, and (here) no geodesics
+    assert later.dist_x is None and not torch.equal(later.rotation, a.rotation)
+    # a plain index (a sampler without keys): position = index, epoch = set_epoch's
+    dataset.set_epoch(0)
+    assert torch.equal(dataset[0].rotation, dataset[SampleKey(0, 0, 0)].rotation)
+    # the dataset travels to DataLoader workers
+    clone = pickle.loads(pickle.dumps(AugmentedPairDataset(_OnePair(batch), augmenter, geodesics=False)))
+    assert torch.equal(clone[SampleKey(0, 5, 0)].rotation, a.rotation)
+    moved = a.to("cpu")
+    assert moved.name == a.pair.name and moved.dist_x.shape == a.dist_x.shape
+
+
+def test_keyed_sampler_yields_epoch_position_index_and_resumes():
+    from shapecorr.data.augmentation import SampleKey
+    from shapecorr.data.datamodule import ResumableShuffleSampler
+
+    plain = ResumableShuffleSampler(10, seed=2)
+    keyed = ResumableShuffleSampler(10, seed=2, keys=True)
+    plain.set_epoch(3)
+    keyed.set_epoch(3)
+    order = list(plain)
+    assert list(keyed) == [SampleKey(3, k, i) for k, i in enumerate(order)]
+    keyed.resume_at(3, 4)
+    assert list(keyed) == [SampleKey(3, k, i) for k, i in enumerate(order)][4:]
+
+
+def test_keyed_distributed_sampler_shards_like_lightnings_sampler():
+    from torch.utils.data import DistributedSampler
+
+    from shapecorr.data.augmentation import SampleKey
+    from shapecorr.data.datamodule import KeyedDistributedSampler
+
+    data = list(range(9))
+    for rank in (0, 1):
+        keyed = KeyedDistributedSampler(data, num_replicas=2, rank=rank, shuffle=True, seed=4)
+        plain = DistributedSampler(data, num_replicas=2, rank=rank, shuffle=True, seed=4)
+        keyed.set_epoch(2)
+        plain.set_epoch(2)
+        assert list(keyed) == [SampleKey(2, k, i) for k, i in enumerate(plain)]
+    keyed.set_epoch(3)
+    assert [key.epoch for key in keyed] == [3] * len(keyed)

@@ -7,6 +7,7 @@ layers) except in the CLI run, which uses the configured model on a 4-shape fold
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import subprocess
@@ -21,21 +22,31 @@ import trimesh
 from hydra.utils import instantiate
 
 import shapecorr.models.neuromorph as nm
-from shapecorr.data.augmentation import PairAugmenter, cached_remesh, remeshed_sample
+from shapecorr.data.augmentation import (
+    PairAugmenter,
+    cached_remesh,
+    remeshed_sample,
+    rotation_about_axis,
+    step_rng,
+)
 from shapecorr.data.cache import ShapeCache
 from shapecorr.data.datasets import PairSample, ShapeSample
 from shapecorr.data.shape import make_shape
 from shapecorr.errors import ConfigError
 from shapecorr.losses.weighted import WeightedLoss
-from shapecorr.models.neuromorph import (
-    NeuroMorph,
-    interpolation_strip_figure,
-    log_interpolation,
-)
+from shapecorr.models.neuromorph import NeuroMorph
 from shapecorr.models.schedules import EpochSchedule, LossWeightSchedule
+from shapecorr.nn.edgeconv_backbone import EdgeConvBackbone
+from shapecorr.viz.interpolation import interpolation_strip_figure, log_interpolation
 
 REPO = Path(__file__).resolve().parents[2]
-SMALL = dict(feature_dim=16, hidden_channels=16, n_blocks=2)
+SMALL_NET = dict(hidden_channels=16, n_blocks=2)
+
+
+def small() -> dict:
+    """Options of a shrunk model: a fresh 16-channel, 2-layer backbone and interpolator."""
+    return dict(backbone=EdgeConvBackbone(feature_dim=16, **SMALL_NET), interpolator=SMALL_NET)
+
 FINAL_LINE = re.compile(r"^test geodesic error: (\d+\.\d+) \(fraction of sqrt\(area\)\) over (\d+) pairs$")
 
 pytestmark = pytest.mark.filterwarnings("ignore:You are trying to `self.log\\(\\)`", "ignore::DeprecationWarning")
@@ -87,7 +98,7 @@ class LossSpy:
 
 def _model(tmp_path, **kwargs) -> NeuroMorph:
     torch.manual_seed(0)
-    options = dict(SMALL, cache_dir=str(tmp_path), augment=dict(resolution=[200, 400], variants=2))
+    options = dict(small(), cache_dir=str(tmp_path), augment=dict(resolution=[200, 400], variants=2))
     return NeuroMorph(**{**options, **kwargs})
 
 
@@ -150,7 +161,7 @@ def test_map_gradient_geodesic_lets_only_the_geodesic_term_train_the_features(pa
     with pytest.raises(ConfigError, match="map_gradient"):
         model.map_gradient = "registration"
     with pytest.raises(ConfigError, match="map_gradient"):
-        NeuroMorph(**SMALL, map_gradient="none")
+        NeuroMorph(**small(), map_gradient="none")
 
 
 def test_geodesics_are_skipped_while_lambda_geo_is_zero(pair, tmp_path, monkeypatch):
@@ -190,8 +201,8 @@ def test_interpolate_frames_maps_and_extrapolation(pair, tmp_path):
         torch.testing.assert_close(chosen, soft.max(1).values, rtol=1e-5, atol=0.0)
         assert float((p2p == soft.argmax(1)).float().mean()) > 0.95
     match = model.match(x, y)
-    torch.testing.assert_close(match.times, torch.tensor(nm.DEFAULT_EVAL_TIMES))
-    assert match.deformation.shape == (len(nm.DEFAULT_EVAL_TIMES), x.shape.n_verts, 3)
+    torch.testing.assert_close(match.times, torch.tensor(nm.DEFAULT_INTERP_TIMES))
+    assert match.deformation.shape == (len(nm.DEFAULT_INTERP_TIMES), x.shape.n_verts, 3)
     assert torch.equal(match.p2p, result.p2p)
     for bad in ([], [0.0, float("nan")], [[0.0, 1.0]]):
         with pytest.raises(ConfigError):
@@ -211,19 +222,19 @@ def test_query_resolution_runs_on_a_remesh_and_carries_back(pair, tmp_path, monk
     # oracle: the same network on the remeshed pair, carried back by hand
     cache = ShapeCache(tmp_path)
     rx, ry = cached_remesh(cache, x.verts, x.faces, 300), cached_remesh(cache, y.verts, y.faces, 300)
-    small = _plain_copy(model).interpolate(remeshed_sample(x, rx), remeshed_sample(y, ry), times)
+    low = _plain_copy(model).interpolate(remeshed_sample(x, rx), remeshed_sample(y, ry), times)
     nearest_x, source_y = torch.from_numpy(rx.nearest_vertex), torch.from_numpy(ry.source_vertex)
-    assert torch.equal(result.p2p, source_y[small.p2p[nearest_x]])
+    assert torch.equal(result.p2p, source_y[low.p2p[nearest_x]])
     source_x, nearest_y = torch.from_numpy(rx.source_vertex), torch.from_numpy(ry.nearest_vertex)
-    assert torch.equal(result.p2p_inv, source_x[small.p2p_inv[nearest_y]])
-    expected = x.verts + rx.lift(small.deformation - torch.from_numpy(rx.verts))
+    assert torch.equal(result.p2p_inv, source_x[low.p2p_inv[nearest_y]])
+    expected = x.verts + rx.lift(low.deformation - torch.from_numpy(rx.verts))
     torch.testing.assert_close(result.deformation, expected)
     model.interpolate(x, y, times)
     assert calls == [300, 300]  # in-memory LRU: no second lookup
 
 
 def _plain_copy(model: NeuroMorph) -> NeuroMorph:
-    copy = NeuroMorph(**SMALL, cache_dir=model.cache_dir).eval()
+    copy = NeuroMorph(**small(), cache_dir=model.cache_dir).eval()
     copy.load_state_dict(model.state_dict())
     return copy
 
@@ -231,7 +242,7 @@ def _plain_copy(model: NeuroMorph) -> NeuroMorph:
 def test_interpolation_metrics_use_the_frame_at_t1(pair, tmp_path, monkeypatch):
     from shapecorr.eval.protocol import score_deformation
 
-    model = _model(tmp_path, eval_times=[0.0, 0.5, 1.5]).eval()  # t = 1 missing: computed for the metrics
+    model = _model(tmp_path, interp_times=[0.0, 0.5, 1.5]).eval()  # t = 1 missing: computed for the metrics
     logged = {}
     monkeypatch.setattr(model, "log", lambda name, value, **kw: logged.__setitem__(name, value))
     result = model.match(pair.x, pair.y)
@@ -245,23 +256,28 @@ def test_interpolation_metrics_use_the_frame_at_t1(pair, tmp_path, monkeypatch):
 def test_options_are_validated(tmp_path):
     # Deep Shells keys that old checkpoints carry: dropped with a warning, and not saved again
     with pytest.warns(UserWarning, match="ignoring Deep Shells option"):
-        legacy = NeuroMorph(**SMALL, num_samples=3, layer={"k": 1}, val_refine_levels=2, num_eigs=4)
+        legacy = NeuroMorph(**small(), num_samples=3, layer={"k": 1}, val_refine_levels=2, num_eigs=4)
     assert not nm.LEGACY_CHECKPOINT_OPTIONS & set(legacy.hparams)
-    for bad in (dict(typo_option=1), dict(lr=0.0), dict(sigma=-1.0), dict(query_resolution=2),
-                dict(arap_edge_weight_scale=0.0), dict(augment=dict(axis="q")), dict(eval_times=[]),
+    for bad in (dict(typo_option=1), dict(sigma=-1.0), dict(query_resolution=2),
+                dict(arap_edge_weight_scale=0.0), dict(augment=dict(axis="q")), dict(interp_times=[]), dict(interp_times=[1.0, 0.5]),
                 dict(loss={"not": "a loss"}), dict(n_intermediate=-1), dict(n_intermediate=1.5)):
         with pytest.raises(ConfigError):
-            NeuroMorph(**SMALL, **bad)
-    model = NeuroMorph(**SMALL)
+            NeuroMorph(**small(), **bad)
+    model = NeuroMorph(**small())
     model.n_intermediate = 7
     assert model.n_intermediate == 7
     with pytest.raises(ConfigError):
         model.n_intermediate = -2
-    assert "loss" not in model.hparams and model.hparams["pool"] == "global"
+    assert "loss" not in model.hparams and model.hparams["interpolator"]["pool"] == "global"
+    assert model.hparams["backbone"]["pool"] == "global" and model.hparams["backbone"]["feature_dim"] == 16
+    with pytest.raises(ConfigError, match="backbone"):
+        NeuroMorph(backbone=torch.nn.Linear(3, 3))
+    with pytest.raises(ConfigError, match="interpolator"):
+        NeuroMorph(interpolator=dict(width=3))
 
 
 def test_schedule_callbacks_drive_the_module(tmp_path):
-    model = NeuroMorph(**SMALL)
+    model = NeuroMorph(**small())
     EpochSchedule("n_intermediate", [[0, 0], [300, 1], [450, 3], [525, 7]]).apply(model, 460)
     LossWeightSchedule("geo", [[0, 50.0], [300, 0.0]]).apply(model, 460)
     assert model.n_intermediate == 3 and model.lambda_geo == 0.0
@@ -276,7 +292,13 @@ def test_configs_compose_with_the_published_settings(tmp_path, compose_config):
         warnings.simplefilter("error")
         model = instantiate(cfg.model, _convert_="object")
     assert isinstance(model, NeuroMorph) and model.loss.weights == {"registration": 1.0, "arap": 1.0, "geo": 50.0}
-    assert model.sigma == 100.0 and model.lr == 1e-4 and model.augment.resolution == (200, 2000)
+    assert model.sigma == 100.0 and model.augment.resolution == (200, 2000)
+    assert isinstance(model.backbone, EdgeConvBackbone) and model.backbone.out_channels == 128
+    assert model.backbone.required_operators == {}
+    assert model.interpolator.net.fc_out.in_features == 128 and len(model.interpolator.net.blocks) == 5
+    optimizer = model.configure_optimizers()
+    assert isinstance(optimizer, torch.optim.Adam) and optimizer.defaults["lr"] == 1e-4
+    assert model.interp_times == nm.DEFAULT_INTERP_TIMES
     callbacks = {name: instantiate(node, _convert_="object") for name, node in cfg.callbacks.items()}
     assert callbacks["neuromorph_T"].schedule.values == [0, 1, 3, 7]
     assert callbacks["neuromorph_T"].schedule.epochs == [0, 300, 450, 525]
@@ -360,6 +382,7 @@ def test_train_cli_tiny_smoke_run(tmp_path):
                 "val/deformation_conformal_distortion"):
         assert tag in scalars, (tag, sorted(scalars))
     assert "val/interpolation/strip" in events.Tags()["images"]
+    assert "neuromorph: mapping old option" not in proc.stderr
     state = torch.load(last, map_location="cpu", weights_only=False)
     assert state["global_step"] == 2 and state["hyper_parameters"]["augment"]["variants"] == 2
     # the evaluation path: load_from_checkpoint (default loss) and query a pair
@@ -369,3 +392,202 @@ def test_train_cli_tiny_smoke_run(tmp_path):
     x = _sample(v, f, "a", np.arange(len(v)))
     assert model.match(x, x).p2p.shape == (len(v),)
     assert len(list((tmp_path / "cache" / "remesh").rglob("*.npz"))) <= 4  # 2 train shapes x 2 variants
+
+
+# -- config nodes (issue 12): backbone, interpolator, optimizer, frame times; old checkpoints ----------------
+def test_old_checkpoint_options_are_mapped_with_a_warning(pair, tmp_path):
+    old = dict(feature_dim=16, hidden_channels=16, n_blocks=2, pool="channel", lr=3e-4, eval_times=[0.0, 1.0])
+    torch.manual_seed(0)
+    with pytest.warns(UserWarning, match="mapping old option"):
+        legacy = NeuroMorph(**old)
+    torch.manual_seed(0)
+    new = NeuroMorph(backbone=EdgeConvBackbone(16, 16, 2, "channel"),
+                     interpolator=dict(hidden_channels=16, n_blocks=2, pool="channel"),
+                     optimizer=functools.partial(torch.optim.Adam, lr=3e-4), interp_times=[0.0, 1.0])
+    # same networks, same initialization, same parameter names as before backbones were injected
+    assert legacy.state_dict().keys() == new.state_dict().keys()
+    assert all(k.startswith(("feature_net.net.", "interpolator.net.")) for k in new.state_dict())
+    for key, value in legacy.state_dict().items():
+        assert torch.equal(value, new.state_dict()[key]), key
+    assert legacy.interpolator.net.pool == "channel" and legacy.backbone.net.pool == "channel"
+    assert legacy.configure_optimizers().defaults["lr"] == 3e-4 and legacy.interp_times == (0.0, 1.0)
+    # the new hyperparameters rebuild the model without legacy keys (what load_from_checkpoint does)
+    assert not LEGACY_KEYS & set(legacy.hparams)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rebuilt = NeuroMorph(**legacy.hparams)
+    rebuilt.load_state_dict(legacy.state_dict())
+    assert rebuilt.backbone.out_channels == 16 and rebuilt.interpolator.net.pool == "channel"
+
+
+LEGACY_KEYS = {"feature_dim", "hidden_channels", "n_blocks", "pool", "lr", "eval_times"}
+
+
+def test_an_old_checkpoint_file_loads(pair, tmp_path):
+    """A checkpoint whose hyperparameters have the flattened network keys and lr (as written before issue 12)."""
+    torch.manual_seed(0)
+    model = NeuroMorph(**small())
+    path = tmp_path / "old.ckpt"
+    hparams = {k: v for k, v in model.hparams.items() if k not in ("backbone", "interpolator", "interp_times")}
+    hparams.update(feature_dim=16, hidden_channels=16, n_blocks=2, pool="global", lr=1e-4,
+                   eval_times=[0.0, 0.5, 1.0])
+    torch.save({"state_dict": model.state_dict(), "hyper_parameters": hparams,
+                "pytorch-lightning_version": "2.0.0"}, path)
+    with pytest.warns(UserWarning, match="mapping old option"):
+        loaded = NeuroMorph.load_from_checkpoint(str(path), map_location="cpu").eval()
+    assert loaded.interp_times == (0.0, 0.5, 1.0)
+    model.eval()
+    a, b = model.match(pair.x, pair.y), loaded.interpolate(pair.x, pair.y, torch.tensor(nm.DEFAULT_INTERP_TIMES))
+    assert torch.equal(a.p2p, b.p2p) and torch.equal(a.deformation, b.deformation)
+
+
+def test_backbone_and_optimizer_nodes_are_selectable(tmp_path):
+    base = ["model=neuromorph", "debug=tiny", f"paths.cache_dir={tmp_path}", f"paths.output_dir={tmp_path}"]
+    cfg = _compose([*base, "model/backbone=edgeconv", "model.backbone.feature_dim=24", "model/scheduler=step",
+                    "model.optimizer.lr=2e-4"])
+    assert cfg.model.backbone._target_ == "shapecorr.nn.edgeconv_backbone.EdgeConvBackbone"
+    model = instantiate(cfg.model, _convert_="object")
+    assert model.backbone.out_channels == 24 and model.feature_net is model.backbone
+    conf = model.configure_optimizers()
+    assert conf["optimizer"].defaults["lr"] == 2e-4
+    assert isinstance(conf["lr_scheduler"]["scheduler"], torch.optim.lr_scheduler.StepLR)
+    # the old key of the frame times still works, with a warning
+    old = _compose([*base, "+model.eval_times=[0.0,1.0]"])
+    with pytest.warns(UserWarning, match="eval_times"):
+        assert instantiate(old.model, _convert_="object").interp_times == (0.0, 1.0)
+    # the old network / lr keys next to the new nodes would be ignored: an error naming the new keys
+    for override, message in (("+model.feature_dim=64", "model.backbone.feature_dim"),
+                              ("+model.lr=1e-3", "model.optimizer.lr")):
+        with pytest.warns(UserWarning), pytest.raises(ConfigError, match=message):
+            NeuroMorph(**instantiate(_compose([*base, override]).model, _convert_="object",
+                                     _target_="builtins.dict"))
+
+
+def test_default_loss_agrees_with_the_loss_config(pair):
+    """default_loss() (what load_from_checkpoint gets) computes what configs/loss/neuromorph.yaml computes."""
+    cfg = _compose(["model=neuromorph"])
+    configured = instantiate(cfg.model.loss, _convert_="object")
+    default = nm.default_loss()
+    assert configured.weights == default.weights == nm.DEFAULT_LOSS_WEIGHTS
+    torch.manual_seed(0)
+    model = NeuroMorph(**small())
+    x, y = pair.x, pair.y
+    times = torch.tensor([0.5, 1.0])
+    out = model.forward_pair(x, y, times)
+    n = x.shape.n_verts
+    dist = torch.cdist(x.verts, x.verts)
+    inputs = dict(verts_x_deformed=out["frames"][-1], verts_y=y.verts, pi_x_to_y=out["pi_x_to_y"],
+                  pi_y_to_x=out["pi_y_to_x"], soft_target=out["soft_target"],
+                  frames=torch.cat((x.verts[None], out["frames"])), edges=out["edges"],
+                  edge_weights=out["edge_counts"].float(), dist_x=dist, dist_y=dist[:n, :n])
+    total_c, values_c = configured(**inputs)
+    total_d, values_d = default(**inputs)
+    assert set(values_c) == set(values_d) == {"registration", "arap", "geo"}
+    for term in values_c:
+        torch.testing.assert_close(values_c[term], values_d[term])
+    torch.testing.assert_close(total_c, total_d)
+    # and a different setting would be seen
+    configured.set_weight("arap", 2.0)
+    assert not torch.allclose(configured(**inputs)[0], total_d)
+
+
+# -- augmentation on the data side ------------------------------------------------------------------------
+def test_data_side_augmentation_equals_the_in_step_augmentation(pair, tmp_path):
+    from shapecorr.data.augmentation import AugmentedPairDataset, SampleKey
+
+    class Pairs:  # a PairDataset stand-in of one pair
+        def __len__(self):
+            return 1
+
+        def __getitem__(self, k):
+            return pair
+
+    model = _model(tmp_path)
+    dataset = AugmentedPairDataset(Pairs(), model.augmenter, geodesics=model.geodesic_epochs())
+    batch = dataset[SampleKey(epoch=0, position=3, index=0)]
+    assert batch.dist_x is not None  # lambda_geo = 50: geodesics come with the sample
+    torch.manual_seed(1)
+    from_data = model.training_step(batch, 3)
+    torch.manual_seed(1)
+    in_step = model.training_step(pair, 3)  # plain pair: augmented in the step with the draws of (seed, 0, 3)
+    assert float(from_data.detach()) == pytest.approx(float(in_step.detach()), rel=1e-6)
+    other = model.training_step(dataset[SampleKey(0, 4, 0)], 4)
+    assert float(other.detach()) != pytest.approx(float(in_step.detach()), rel=1e-6)
+    # a sample built without geodesics (the data side expected lambda_geo = 0): looked up in the step
+    no_geo = AugmentedPairDataset(Pairs(), model.augmenter, geodesics=False)[SampleKey(0, 3, 0)]
+    assert no_geo.dist_x is None
+    assert float(model.training_step(no_geo, 3).detach()) == pytest.approx(float(in_step.detach()), rel=1e-6)
+
+
+def test_geodesic_epochs_follow_the_loss_weight_schedule(tmp_path):
+    import pickle
+
+    model = _model(tmp_path)
+    schedule = LossWeightSchedule("geo", [[0, 50.0], [300, 0.0]])
+
+    class Trainer:
+        callbacks = [EpochSchedule("n_intermediate", [[0, 0]]), schedule]
+
+    model._trainer = Trainer()
+    flag = pickle.loads(pickle.dumps(model.geodesic_epochs()))  # travels to DataLoader workers
+    assert flag(0) and flag(299) and not flag(300) and not flag(600)
+    model._trainer = None
+    model.loss.set_weight("geo", 0.0)
+    assert model.geodesic_epochs() is False
+
+
+class Recording(NeuroMorph):
+    """Records, per training step, (epoch, batch index, batch type, the rotation of the augmentation)."""
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.seen = []
+
+    def training_step(self, batch, batch_idx):
+        self.seen.append((self.current_epoch, batch_idx, type(batch).__name__, batch.rotation.cpu().clone()))
+        return super().training_step(batch, batch_idx)
+
+
+def test_lightning_fit_augments_on_the_data_side_and_resumes_with_the_same_draws(tmp_path):
+    """train_dataloader serves AugmentedPairs (in a worker process); a run resumed mid-epoch draws as the full run."""
+    import pytorch_lightning as pl
+    from pytorch_lightning.callbacks import ModelCheckpoint
+
+    from shapecorr.data.datamodule import ShapePairDataModule
+
+    data = tmp_path / "data"
+    _folder_dataset(data)
+
+    def objects(workers):
+        dm = ShapePairDataModule(str(data), splits={"train": {"split": "train"}, "val": {"split": "test"},
+                                                    "test": {"split": "test"}},
+                                 pairs={"train": {"include_self": True}, "val": {"max_pairs": 1}},
+                                 operators={"n_eig": 8}, cache_dir=str(tmp_path / "cache"), num_workers=workers,
+                                 prepare_workers=1)
+        torch.manual_seed(0)
+        model = Recording(**small(), augment=dict(remesh=False, rotate=True), seed=5)
+        model.loss.set_weight("geo", 0.0)
+        return dm, model
+
+    def trainer(**kwargs):
+        options = dict(accelerator="cpu", devices=1, max_epochs=2, limit_val_batches=0, num_sanity_val_steps=0,
+                       logger=False, enable_progress_bar=False, enable_model_summary=False,
+                       default_root_dir=str(tmp_path))
+        return pl.Trainer(**{**options, **kwargs})
+
+    dm, full = objects(workers=1)  # 4 train pairs (a, b with self-pairs) x 2 epochs
+    trainer(enable_checkpointing=False).fit(full, datamodule=dm)
+    assert [(e, b, kind) for e, b, kind, _ in full.seen] == [(e, b, "AugmentedPair") for e in (0, 1) for b in range(4)]
+    for epoch, batch_idx, _, rotation in full.seen:  # the draws of (seed, epoch, batch index)
+        angle = float(step_rng(5, epoch, batch_idx).uniform(0.0, 2.0 * np.pi))
+        torch.testing.assert_close(rotation, rotation_about_axis(angle, "y"))
+
+    dm, first = objects(workers=0)
+    ckpt = ModelCheckpoint(dirpath=str(tmp_path / "ckpt"), every_n_train_steps=6, save_top_k=-1,
+                           filename="step{step}", auto_insert_metric_name=False)
+    trainer(max_steps=6, callbacks=[ckpt]).fit(first, datamodule=dm)
+    dm, resumed = objects(workers=0)
+    trainer(enable_checkpointing=False).fit(resumed, datamodule=dm, ckpt_path=str(tmp_path / "ckpt" / "step6.ckpt"))
+    assert [s[:2] for s in resumed.seen] == [s[:2] for s in full.seen[6:]]
+    for (_, _, _, a), (_, _, _, b) in zip(resumed.seen, full.seen[6:]):
+        assert torch.equal(a, b)
