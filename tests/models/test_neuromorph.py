@@ -441,9 +441,9 @@ def test_an_old_checkpoint_file_loads(pair, tmp_path):
     assert torch.equal(a.p2p, b.p2p) and torch.equal(a.deformation, b.deformation)
 
 
-def test_backbone_and_optimizer_nodes_are_selectable(tmp_path):
+def test_backbone_and_optimizer_nodes_are_selectable(tmp_path, compose_config):
     base = ["model=neuromorph", "debug=tiny", f"paths.cache_dir={tmp_path}", f"paths.output_dir={tmp_path}"]
-    cfg = _compose([*base, "model/backbone=edgeconv", "model.backbone.feature_dim=24", "model/scheduler=step",
+    cfg = compose_config("train", [*base, "model/backbone=edgeconv", "model.backbone.feature_dim=24", "model/scheduler=step",
                     "model.optimizer.lr=2e-4"])
     assert cfg.model.backbone._target_ == "shapecorr.nn.edgeconv_backbone.EdgeConvBackbone"
     model = instantiate(cfg.model, _convert_="object")
@@ -452,20 +452,20 @@ def test_backbone_and_optimizer_nodes_are_selectable(tmp_path):
     assert conf["optimizer"].defaults["lr"] == 2e-4
     assert isinstance(conf["lr_scheduler"]["scheduler"], torch.optim.lr_scheduler.StepLR)
     # the old key of the frame times still works, with a warning
-    old = _compose([*base, "+model.eval_times=[0.0,1.0]"])
+    old = compose_config("train", [*base, "+model.eval_times=[0.0,1.0]"])
     with pytest.warns(UserWarning, match="eval_times"):
         assert instantiate(old.model, _convert_="object").interp_times == (0.0, 1.0)
     # the old network / lr keys next to the new nodes would be ignored: an error naming the new keys
     for override, message in (("+model.feature_dim=64", "model.backbone.feature_dim"),
                               ("+model.lr=1e-3", "model.optimizer.lr")):
         with pytest.warns(UserWarning), pytest.raises(ConfigError, match=message):
-            NeuroMorph(**instantiate(_compose([*base, override]).model, _convert_="object",
+            NeuroMorph(**instantiate(compose_config("train", [*base, override]).model, _convert_="object",
                                      _target_="builtins.dict"))
 
 
-def test_default_loss_agrees_with_the_loss_config(pair):
+def test_default_loss_agrees_with_the_loss_config(pair, compose_config):
     """default_loss() (what load_from_checkpoint gets) computes what configs/loss/neuromorph.yaml computes."""
-    cfg = _compose(["model=neuromorph"])
+    cfg = compose_config("train", ["model=neuromorph"])
     configured = instantiate(cfg.model.loss, _convert_="object")
     default = nm.default_loss()
     assert configured.weights == default.weights == nm.DEFAULT_LOSS_WEIGHTS
