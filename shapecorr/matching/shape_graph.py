@@ -44,8 +44,9 @@ shape (e.g. a few low Laplace-Beltrami eigenvalues, "shape DNA"), each shape's `
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence, Union
 
 import networkx as nx
 import numpy as np
@@ -71,9 +72,9 @@ DENSE_GRAPH_FRACTION = 0.25
 #: scipy.sparse.csgraph marks "no predecessor" with this value.
 _SCIPY_NO_PREDECESSOR = -9999
 
-MapLike = Union[torch.Tensor, np.ndarray]
+MapLike = torch.Tensor | np.ndarray
 #: One query's maps: ``(map_i_to_j, map_j_to_i)`` or ``map_i_to_j`` alone.
-QueryMaps = Union[MapLike, Sequence[MapLike]]
+QueryMaps = MapLike | Sequence[MapLike]
 
 
 class UnreachableShapeError(ShapeCorrError):
@@ -183,7 +184,7 @@ def _tsp_edges(weights: np.ndarray, seed: int) -> np.ndarray:
     )[:-1]
     at = cycle.index(dummy)
     path = cycle[at + 1 :] + cycle[:at]
-    out = np.array([(min(a, b), max(a, b)) for a, b in zip(path[:-1], path[1:])], dtype=np.int64)
+    out = np.array([(min(a, b), max(a, b)) for a, b in itertools.pairwise(path)], dtype=np.int64)
     return out[np.lexsort((out[:, 1], out[:, 0]))]
 
 
@@ -384,7 +385,7 @@ def compose_along_path(path: Sequence[int], costs, maps: Mapping[tuple[int, int]
             raise ConfigError("the identity map of a one-shape path needs n_source (its vertex count)")
         return torch.arange(int(n_source), dtype=torch.int64)
     out = hop_map(path[0], path[1], costs, maps)
-    for a, b in zip(path[1:-1], path[2:]):
+    for a, b in itertools.pairwise(path[1:]):
         nxt = hop_map(a, b, costs, maps).to(out.device)
         if out.numel() and (int(out.max()) >= nxt.shape[0] or int(out.min()) < 0):
             raise CorrespondenceError(

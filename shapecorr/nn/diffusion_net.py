@@ -32,7 +32,9 @@ The per-shape operators come from the operator registry (:mod:`shapecorr.data.op
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+import itertools
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import torch
 from torch import nn
@@ -140,7 +142,7 @@ class GradientFeatures(nn.Module):
 def _mlp(sizes: Sequence[int], dropout: float) -> nn.Sequential:
     """Linear layers with ReLU and dropout between them (none after the last)."""
     layers: list[nn.Module] = []
-    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+    for i, (a, b) in enumerate(itertools.pairwise(sizes)):
         layers.append(nn.Linear(a, b))
         if i < len(sizes) - 2:
             layers.append(nn.ReLU())

@@ -8,7 +8,11 @@ from scipy.spatial import Delaunay
 from scipy.spatial.transform import Rotation
 
 from shapecorr.errors import ConfigError, InvalidMeshError, NumericalError
-from shapecorr.geometry.diffusion_operators import diffusion_gradients, spatial_gradient, tangent_frames
+from shapecorr.geometry.diffusion_operators import (
+    diffusion_gradients,
+    spatial_gradient,
+    tangent_frames,
+)
 
 
 def _planar_patch(seed=0, n=150):

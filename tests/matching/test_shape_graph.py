@@ -56,6 +56,9 @@ def test_full_graph_shortest_path_routes_around_an_expensive_pair():
     assert g.distances[0, 3] == pytest.approx(3.0) and g.unreachable_pairs().shape == (0, 2)
     c[0, 3] = 2.5  # now the direct edge is shorter than the chain
     assert build_shape_graph(c, "full").path(0, 3) == [0, 3]
+    c[1, 2] = 0.0  # a zero-cost edge is an edge (not a missing one): the chain is shorter again
+    g = build_shape_graph(c, "full")
+    assert g.path(0, 3) == [0, 1, 2, 3] and g.distances[0, 3] == pytest.approx(2.0)
 
 
 def test_mst_has_n_minus_one_edges_and_the_minimal_weight():
@@ -64,7 +67,7 @@ def test_mst_has_n_minus_one_edges_and_the_minimal_weight():
     c[3, 7] = 0.0  # a zero-weight edge must be kept (scipy would drop it without the shift)
     g = build_shape_graph(c, "mst")
     assert g.edges.shape == (n - 1, 2)
-    graph, connected = _connected(n, g.edges)
+    _graph, connected = _connected(n, g.edges)
     assert connected and [3, 7] in g.edges.tolist()
     w = symmetric_weights(c)
     ref = nx.Graph()
@@ -93,7 +96,7 @@ def test_tsp_is_a_deterministic_near_optimal_hamiltonian_path():
     graph, connected = _connected(n, g.edges)
     assert g.edges.shape == (n - 1, 2) and connected and max(d for _, d in graph.degree) <= 2  # a Hamiltonian path
     assert np.array_equal(build_shape_graph(c, "tsp").edges, g.edges)  # deterministic
-    best = min(sum(c[a, b] for a, b in zip(p[:-1], p[1:])) for p in itertools.permutations(range(n)))
+    best = min(sum(c[a, b] for a, b in itertools.pairwise(p)) for p in itertools.permutations(range(n)))
     assert c[g.edges[:, 0], g.edges[:, 1]].sum() <= 1.15 * best
     with pytest.raises(ConfigError, match="all pairs"):
         c2 = c.copy()

@@ -1,5 +1,6 @@
 """DiffusionNet: spectral diffusion limits, rotation invariance, discretization agnosticism, the backbone."""
 
+import itertools
 from types import SimpleNamespace
 
 import numpy as np
@@ -16,7 +17,11 @@ from shapecorr.geometry.diffusion_operators import diffusion_gradients
 from shapecorr.geometry.laplace_beltrami import eigenbasis
 from shapecorr.geometry.remeshing import remesh
 from shapecorr.nn.backbone import Backbone
-from shapecorr.nn.diffusion_net import DiffusionNet, DiffusionNetBackbone, spectral_diffusion
+from shapecorr.nn.diffusion_net import (
+    DiffusionNet,
+    DiffusionNetBackbone,
+    spectral_diffusion,
+)
 
 K_EIG = 32
 # Fixed times, so that both meshings get the same descriptor channels; long enough that exp(-lambda_k t) is
@@ -80,7 +85,7 @@ def test_spectral_diffusion_limits():
     # in between, diffusion smooths monotonically: the mass-weighted L2 norm decreases with t
     energies = [float((spectral_diffusion(y, evals, evecs, mass, torch.full((5,), t, dtype=torch.float64)) ** 2
                        * mass[:, None]).sum()) for t in (0.0, 0.01, 0.1, 1.0)]
-    assert all(a > b for a, b in zip(energies, energies[1:]))
+    assert all(a > b for a, b in itertools.pairwise(energies))
 
 
 def test_features_are_invariant_to_rotation_for_intrinsic_input():
