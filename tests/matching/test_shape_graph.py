@@ -218,3 +218,34 @@ def test_knn_graph_from_sparse_costs_connects_through_candidates():
     assert mst.edges.shape[0] == n - n_comp
     with pytest.raises(ConfigError, match="costs"):
         costs_from_pairs(n, pairs, d[:-1])
+
+
+def test_tree_composed_maps_are_cycle_consistent_where_direct_maps_are_not():
+    from shapecorr.eval.metrics import cycle_consistency_errors
+
+    rng = np.random.default_rng(6)
+    n, m = 6, 40
+    labels = [rng.permutation(m) for _ in range(n)]  # shape k, vertex v <-> template point labels[k][v]
+    inverse = [np.argsort(lab) for lab in labels]
+    dist = [np.abs(lab[:, None] - lab[None, :]).astype(float) for lab in labels]  # template points on a line
+    costs = np.full((n, n), 1.0) + rng.random((n, n))
+    maps = {}
+    for i, j in itertools.combinations(range(n), 2):
+        sigma = inverse[j][labels[i]]  # the true bijection i -> j
+        if rng.random() < 0.3:  # a wrong (but bijective) pair of queries, with a high cost
+            sigma = sigma[rng.permutation(m)]
+            costs[i, j] = costs[j, i] = 10.0
+        # both queries return a bijection and its inverse (Deep Shells' two outputs of one query)
+        maps[(i, j)] = (torch.from_numpy(sigma), torch.from_numpy(np.argsort(sigma)))
+        maps[(j, i)] = (torch.from_numpy(np.argsort(sigma)), torch.from_numpy(sigma))
+    triplets = list(itertools.permutations(range(n), 3))
+    direct = {k: v[0] for k, v in maps.items()}
+    err_direct = max(cycle_consistency_errors(direct[(a, b)], direct[(b, c)], direct[(c, a)], dist[a], 1.0).max()
+                     for a, b, c in triplets)
+    assert err_direct > 0
+    # On a tree, the closed walk a -> b -> c -> a crosses every edge both ways, each time by one query's two
+    # mutually inverse maps: exactly cycle consistent (even through a wrong edge).
+    for variant in ("mst", "star", "tsp"):
+        out = compose_all(build_shape_graph(costs, variant), maps).maps
+        for a, b, c in triplets:
+            assert cycle_consistency_errors(out[(a, b)], out[(b, c)], out[(c, a)], dist[a], 1.0).max() == 0
