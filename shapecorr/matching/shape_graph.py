@@ -17,7 +17,8 @@ Conventions
   indices.
 - A *hop* from ``i`` to ``j`` uses the direct map ``i -> j`` of query ``(i, j)`` when ``c_ij < c_ji``, and
   otherwise the reverse map of query ``(j, i)`` (its Y -> X output, which also maps ``i`` to ``j``): the more
-  reliable of the two queries decides, as in the original. When only one of them is available it is used.
+  reliable of the two queries decides, as in the original (exact ties: the query ``(min, max)``, so that both
+  directions of an edge always use one query). When only one of them is available it is used.
 
 Graph variants (:data:`GRAPH_VARIANTS`)
 ---------------------------------------
@@ -323,7 +324,8 @@ def hop_map(i: int, j: int, costs, maps: Mapping[tuple[int, int], QueryMaps]) ->
     """Point-to-point map from shape ``i`` to shape ``j`` for one hop of a path.
 
     The direct map of query ``(i, j)`` when ``c_ij < c_ji``, else the reverse (Y -> X) map of query ``(j, i)``;
-    when only one of them is available (stored, with a finite cost), that one.
+    on an exact tie the query ``(min(i, j), max(i, j))``, so that the hops ``i -> j`` and ``j -> i`` always use
+    the same query. When only one of them is stored, that one.
 
     Parameters
     ----------
@@ -348,7 +350,8 @@ def hop_map(i: int, j: int, costs, maps: Mapping[tuple[int, int], QueryMaps]) ->
     _, reverse = _query_maps(maps, j, i)
     c_ij = float(c[i][j]) if direct is not None else np.inf
     c_ji = float(c[j][i]) if reverse is not None else np.inf
-    if direct is not None and (c_ij < c_ji or reverse is None):
+    # exact ties: the query (min, max) serves both directions, so that both hops use the same query
+    if direct is not None and (reverse is None or c_ij < c_ji or (c_ij == c_ji and i < j)):
         return direct
     if reverse is not None:
         return reverse

@@ -153,6 +153,9 @@ def test_composition_along_a_path_equals_the_true_map_and_uses_the_cheaper_direc
     assert torch.equal(hop_map(0, 1, c, m), a)
     assert torch.equal(hop_map(0, 1, np.array([[0.0, 2.0], [1.0, 0.0]]), m), b)
     assert torch.equal(hop_map(0, 1, c, {(0, 1): a}), a)  # only one direction stored
+    tie = np.array([[0.0, 1.0], [1.0, 0.0]])  # a tie: query (0, 1) serves both directions
+    assert torch.equal(hop_map(0, 1, tie, m), a)
+    assert torch.equal(hop_map(1, 0, tie, {(0, 1): (a, b), (1, 0): (a, a)}), b)
     with pytest.raises(CorrespondenceError, match="no map"):
         hop_map(1, 0, c, {(0, 1): a})
     assert torch.equal(compose_along_path([2], c, m, n_source=5), torch.arange(5))
