@@ -389,13 +389,18 @@ def compose_along_path(path: Sequence[int], costs, maps: Mapping[tuple[int, int]
         return torch.arange(int(n_source), dtype=torch.int64)
     out = hop_map(path[0], path[1], costs, maps)
     for a, b in itertools.pairwise(path[1:]):
-        nxt = hop_map(a, b, costs, maps).to(out.device)
-        if out.numel() and (int(out.max()) >= nxt.shape[0] or int(out.min()) < 0):
-            raise CorrespondenceError(
-                f"the map into shape {a} has indices outside [0, {nxt.shape[0]}) (its maps do not fit its vertex count)"
-            )
-        out = nxt[out]
+        out = _chain(out, hop_map(a, b, costs, maps), a)
     return out
+
+
+def _chain(first: torch.Tensor, then: torch.Tensor, via: int) -> torch.Tensor:
+    """``then[first]``: a map into shape ``via`` followed by a map out of it (indices checked)."""
+    then = then.to(first.device)
+    if first.numel() and (int(first.max()) >= then.shape[0] or int(first.min()) < 0):
+        raise CorrespondenceError(
+            f"the map into shape {via} has indices outside [0, {then.shape[0]}) (its maps do not fit its vertex count)"
+        )
+    return then[first]
 
 
 @dataclass
@@ -436,13 +441,28 @@ def compose_all(graph: ShapeGraph, maps: Mapping[tuple[int, int], QueryMaps],
     if pairs is None:
         pairs = [(s, t) for s in range(graph.n) for t in range(graph.n) if s != t]
     out = ComposedMaps()
+    by_source: dict[int, list[int]] = {}
     for s, t in np.asarray(pairs, dtype=np.int64).reshape(-1, 2).tolist():
+        if s == t:
+            raise ConfigError(f"compose_all needs pairs of different shapes, got ({s}, {t})")
         if not graph.reachable(s, t):
             out.unreachable.append((s, t))
-            continue
-        path = graph.path(s, t)
-        out.paths[(s, t)] = path
-        out.maps[(s, t)] = compose_along_path(path, graph.costs, maps)
+        else:
+            by_source.setdefault(s, []).append(t)
+    for s, targets in by_source.items():
+        # The shortest paths from s form a tree (the predecessors): compose each vertex's map once, from its
+        # predecessor's, so a source costs one hop per reached shape instead of one per hop of every path. The
+        # result is the same chain of hop maps as compose_along_path(graph.path(s, t)).
+        composed: dict[int, torch.Tensor] = {}
+        for t in targets:
+            chain = [t]
+            while chain[-1] != s and chain[-1] not in composed:
+                chain.append(int(graph.predecessors[s, chain[-1]]))
+            for prev, v in zip(chain[:0:-1], chain[-2::-1]):
+                hop = hop_map(prev, v, graph.costs, maps)
+                composed[v] = hop if prev == s else _chain(composed[prev], hop, prev)
+            out.maps[(s, t)] = composed[t]
+            out.paths[(s, t)] = graph.path(s, t)
     return out
 
 

@@ -252,3 +252,24 @@ def test_tree_composed_maps_are_cycle_consistent_where_direct_maps_are_not():
         out = compose_all(build_shape_graph(costs, variant), maps).maps
         for a, b, c in triplets:
             assert cycle_consistency_errors(out[(a, b)], out[(b, c)], out[(c, a)], dist[a], 1.0).max() == 0
+
+
+def test_compose_all_equals_composing_each_path_on_long_tree_paths():
+    rng = np.random.default_rng(8)
+    n, sizes = 9, rng.integers(5, 12, 9)
+    maps = {(i, j): (torch.from_numpy(rng.integers(0, sizes[j], sizes[i])), torch.from_numpy(rng.integers(0, sizes[i], sizes[j])))
+            for i, j in itertools.permutations(range(n), 2)}
+    g = build_shape_graph(_random_costs(n, 9), "mst")
+    out = compose_all(g, maps)
+    assert max(len(p) for p in out.paths.values()) >= 4  # long paths: the shared prefixes matter
+    for (s, t), m in out.maps.items():
+        assert out.paths[(s, t)] == g.path(s, t)
+        assert torch.equal(m, compose_along_path(g.path(s, t), g.costs, maps))
+    sub = compose_all(g, maps, pairs=[(0, 5), (5, 0)])
+    assert set(sub.maps) == {(0, 5), (5, 0)} and torch.equal(sub.maps[(0, 5)], out.maps[(0, 5)])
+    with pytest.raises(ConfigError, match="different shapes"):
+        compose_all(g, maps, pairs=[(1, 1)])
+    bad = dict(maps)
+    bad[(0, 1)] = (torch.full((sizes[0],), 99), bad[(0, 1)][1])  # indices beyond shape 1's vertex count
+    with pytest.raises(CorrespondenceError, match="outside"):
+        compose_along_path([0, 1, 2], np.zeros((n, n)), bad)
