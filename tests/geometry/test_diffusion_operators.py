@@ -118,3 +118,16 @@ def test_degenerate_one_ring_needs_a_ridge_and_bad_input_raises():
         tangent_frames(np.full((4, 3), np.nan), f)
     with pytest.raises(NumericalError, match="no vertex normal"):
         tangent_frames(np.vstack([v, [[5, 5, 5]]]), f)  # vertex 4 is in no face
+
+
+def test_frames_where_the_normal_is_the_reference_axis():
+    v, f, _ = _planar_patch(seed=5)
+    v = v @ np.linalg.inv(_planar_patch(seed=5)[2]).T  # back to the z = 0 plane
+    v = v[:, [2, 0, 1]]  # the plane x = 0: every normal is +-e_x, the first reference axis
+    ops = diffusion_gradients(v, f, ridge=0.0)
+    fr = ops["frames"].astype(np.float64)
+    assert np.abs(np.abs(fr[:, 2, 0]) - 1).max() < 1e-6
+    assert np.abs(np.einsum("nij,nkj->nik", fr, fr) - np.eye(3)).max() < 1e-5
+    c = np.array([0.0, 1.5, -0.5])
+    got = np.stack([ops["grad_x"] @ (v @ c), ops["grad_y"] @ (v @ c)], axis=1)
+    assert np.abs(got - np.stack([fr[:, 0] @ c, fr[:, 1] @ c], axis=1)).max() < 1e-4
