@@ -1,0 +1,386 @@
+"""DiffusionNet (Sharp, Attaiki, Crane & Ovsjanikov, "DiffusionNet: Discretization Agnostic Learning on
+Surfaces", ACM ToG 2022) and its backbone.
+
+The network maps per-vertex input features ``x (n, C_in)`` to per-vertex features ``(n, C_out)``:
+
+1. ``x <- x W_in + b`` (width ``W``);
+2. ``n_blocks`` times ``x <- x + MLP([x, h, g])`` with
+   - ``h = Phi diag(exp(-lambda t_c)) Phi^T M x_c``: spectral heat diffusion of each channel ``c`` for its own
+     learned time ``t_c >= 0`` (paper §3.2; ``Phi (n, k)`` mass-orthonormal eigenfunctions, ``lambda (k,)``,
+     ``M`` the lumped mass);
+   - ``g``: spatial gradient features (paper §3.3). The gradient of every diffused channel in the vertex tangent
+     frames is a complex number ``z_c = (G_x h)_c + i (G_y h)_c``; a learned complex-linear map mixes the
+     channels, ``w = A z`` (``A = A_re + i A_im``, no bias: each entry scales *and rotates* a gradient, the
+     "with gradient rotations" variant), and the feature is ``tanh(Re(conj(z_c) w_c))``, the dot product of the
+     gradient with its transformed version. A rotation of vertex ``i``'s tangent frame multiplies all
+     ``z_c(i)`` and ``w_c(i)`` by the same unit complex number, which cancels in ``conj(z) w``: the output does
+     not depend on how the frames' first axes are chosen (nor, with intrinsic inputs such as HKS/WKS, on the
+     shape's orientation in space). Without rotations ``A`` is real;
+   - MLP: ``Linear(3W, W) - ReLU - Dropout - Linear(W, W) - ReLU - Dropout - Linear(W, W)`` (hidden sizes
+     configurable);
+3. ``x W_out + b`` (optionally followed by a last activation; G-MSM uses none).
+
+The diffusion times are initialized at 0 (the identity on the span of the basis) and kept non-negative by
+projection: before a forward pass uses them, negative entries (after an optimizer step) are set to 0 in place
+(the reference implementation clamps at 1e-8 in the same way). Projection instead of a functional clamp keeps
+the gradient of a time at the boundary alive.
+
+The per-shape operators come from the operator registry (:mod:`shapecorr.data.operators`), computed by
+:mod:`shapecorr.geometry.laplace_beltrami` (``eigenbasis``) and :mod:`shapecorr.geometry.diffusion_operators`
+(``diffusion_gradients``); see ``docs/gmsm.md`` for the published settings.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import torch
+from torch import nn
+
+from shapecorr.errors import ConfigError, NumericalError
+from shapecorr.nn.backbone import Backbone
+
+#: Published DiffusionNet setting of G-MSM (Eisenberger et al., CVPR 2023, with the DiffusionNet defaults of
+#: Sharp et al. 2022): width, blocks, output channels, eigenpairs, dropout probability (docs/gmsm.md).
+DEFAULT_WIDTH = 128
+DEFAULT_BLOCKS = 4
+DEFAULT_OUT_CHANNELS = 128
+DEFAULT_K_EIG = 128
+DEFAULT_DROPOUT = 0.5
+#: Initial diffusion time of every channel (Sharp et al. 2022: zero, i.e. no diffusion).
+INITIAL_DIFFUSION_TIME = 0.0
+
+LAST_ACTIVATIONS = {None: None, "none": None, "relu": nn.ReLU, "sigmoid": nn.Sigmoid, "tanh": nn.Tanh}
+#: Inputs a DiffusionNetBackbone reads from the sample directly (anything else names a descriptor operator).
+XYZ_INPUT = "xyz"
+
+
+def spectral_diffusion(
+    x: torch.Tensor, evals: torch.Tensor, evecs: torch.Tensor, mass: torch.Tensor, times: torch.Tensor
+) -> torch.Tensor:
+    """Heat diffusion of each channel for its own time, in a truncated eigenbasis.
+
+    ``Phi diag(exp(-lambda t_c)) Phi^T M x_c`` for every channel ``c``: at ``t = 0`` the mass-orthogonal
+    projection onto the span of ``Phi`` (the identity on that span); for ``t -> inf`` only the constant
+    eigenfunction survives and every value tends to the mass-weighted mean ``sum_i m_i x_i / sum_i m_i``.
+
+    Parameters
+    ----------
+    x : (n, C) float
+    evals : (k,) float
+        Eigenvalues ``>= 0`` (of ``L phi = lambda M phi``).
+    evecs : (n, k) float
+        Mass-orthonormal eigenfunctions ``Phi^T M Phi = I``.
+    mass : (n,) float
+        Lumped vertex areas.
+    times : (C,) float
+        Diffusion times ``>= 0``.
+
+    Returns
+    -------
+    (n, C) float
+    """
+    coeffs = evecs.transpose(0, 1) @ (mass[:, None] * x)  # (k, C)
+    coeffs = coeffs * torch.exp(-evals[:, None] * times[None, :])
+    return evecs @ coeffs
+
+
+class LearnedTimeDiffusion(nn.Module):
+    """Spectral diffusion with a learned, non-negative time per channel (see the module docstring).
+
+    Parameters
+    ----------
+    channels : int
+    init_time : float
+        Initial time of every channel.
+    """
+
+    def __init__(self, channels: int, init_time: float = INITIAL_DIFFUSION_TIME):
+        super().__init__()
+        self.times = nn.Parameter(torch.full((channels,), float(init_time)))
+
+    def project_times(self) -> None:
+        """Set negative times to 0 in place (only when there is one, so no version bump otherwise)."""
+        if bool((self.times < 0).any()):
+            with torch.no_grad():
+                self.times.clamp_(min=0.0)
+
+    def forward(self, x: torch.Tensor, evals: torch.Tensor, evecs: torch.Tensor, mass: torch.Tensor) -> torch.Tensor:
+        """``x (n, C)`` diffused: ``(n, C)``."""
+        self.project_times()
+        return spectral_diffusion(x, evals, evecs, mass, self.times)
+
+
+class GradientFeatures(nn.Module):
+    """Frame-independent features of per-channel tangent gradients (paper §3.3).
+
+    Parameters
+    ----------
+    channels : int
+    with_rotations : bool
+        Complex-linear mixing (scales and rotates gradients; the published variant) or a real linear map.
+    """
+
+    def __init__(self, channels: int, with_rotations: bool = True):
+        super().__init__()
+        self.with_rotations = with_rotations
+        self.a_re = nn.Linear(channels, channels, bias=False)
+        self.a_im = nn.Linear(channels, channels, bias=False) if with_rotations else None
+
+    def forward(self, grad_re: torch.Tensor, grad_im: torch.Tensor) -> torch.Tensor:
+        """Features ``(n, C)`` from the gradient components ``grad_re, grad_im (n, C)`` (along x and y axes)."""
+        if self.with_rotations:
+            w_re = self.a_re(grad_re) - self.a_im(grad_im)
+            w_im = self.a_re(grad_im) + self.a_im(grad_re)
+        else:
+            w_re, w_im = self.a_re(grad_re), self.a_re(grad_im)
+        return torch.tanh(grad_re * w_re + grad_im * w_im)
+
+
+def _mlp(sizes: Sequence[int], dropout: float) -> nn.Sequential:
+    """Linear layers with ReLU and dropout between them (none after the last)."""
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(itertools.pairwise(sizes)):
+        layers.append(nn.Linear(a, b))
+        if i < len(sizes) - 2:
+            layers.append(nn.ReLU())
+            if dropout > 0:
+                layers.append(nn.Dropout(dropout))
+    return nn.Sequential(*layers)
+
+
+class DiffusionNetBlock(nn.Module):
+    """One residual DiffusionNet block: diffusion, gradient features, per-vertex MLP (module docstring).
+
+    Parameters
+    ----------
+    width : int
+    mlp_hidden : sequence of int
+        Hidden sizes of the MLP (published: ``[width, width]``).
+    dropout : float
+        Dropout probability after each hidden layer (0 disables).
+    with_gradient_features, with_gradient_rotations : bool
+    """
+
+    def __init__(
+        self,
+        width: int,
+        mlp_hidden: Sequence[int],
+        dropout: float = DEFAULT_DROPOUT,
+        with_gradient_features: bool = True,
+        with_gradient_rotations: bool = True,
+    ):
+        super().__init__()
+        self.diffusion = LearnedTimeDiffusion(width)
+        self.gradient = GradientFeatures(width, with_gradient_rotations) if with_gradient_features else None
+        n_in = 3 * width if with_gradient_features else 2 * width
+        self.mlp = _mlp([n_in, *mlp_hidden, width], dropout)
+
+    def forward(self, x, evals, evecs, mass, grad_x, grad_y) -> torch.Tensor:
+        """``x (n, W)`` -> ``(n, W)``; operators as in :meth:`DiffusionNet.forward`."""
+        h = self.diffusion(x, evals, evecs, mass)
+        parts = [x, h]
+        if self.gradient is not None:
+            parts.append(self.gradient(grad_x @ h, grad_y @ h))
+        return x + self.mlp(torch.cat(parts, dim=1))
+
+
+class DiffusionNet(nn.Module):
+    """DiffusionNet on per-vertex features (module docstring), outputs at the vertices.
+
+    Parameters
+    ----------
+    in_channels, out_channels : int
+    width : int
+        Channels inside the blocks (published 128).
+    n_blocks : int
+        Number of residual blocks (published 4).
+    mlp_hidden : sequence of int, optional
+        Hidden sizes of each block's MLP; default ``[width, width]`` (published).
+    dropout : float
+        Dropout probability in the MLPs (published: dropout on, p = 0.5; 0 disables).
+    with_gradient_features, with_gradient_rotations : bool
+        Published: both on.
+    last_activation : {None, "relu", "sigmoid", "tanh"}
+        Applied to the output (G-MSM: none).
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int = DEFAULT_OUT_CHANNELS,
+        width: int = DEFAULT_WIDTH,
+        n_blocks: int = DEFAULT_BLOCKS,
+        mlp_hidden: Sequence[int] | None = None,
+        dropout: float = DEFAULT_DROPOUT,
+        with_gradient_features: bool = True,
+        with_gradient_rotations: bool = True,
+        last_activation: str | None = None,
+    ):
+        super().__init__()
+        if min(in_channels, out_channels, width) < 1 or n_blocks < 0:
+            raise ConfigError(
+                f"DiffusionNet needs positive in/out channels and width and n_blocks >= 0, got in={in_channels}, "
+                f"out={out_channels}, width={width}, n_blocks={n_blocks}"
+            )
+        if not 0.0 <= dropout < 1.0:
+            raise ConfigError(f"DiffusionNet dropout must be a probability in [0, 1), got {dropout}")
+        if last_activation not in LAST_ACTIVATIONS:
+            raise ConfigError(f"last_activation must be one of {list(LAST_ACTIVATIONS)}, got {last_activation!r}")
+        hidden = [width, width] if mlp_hidden is None else [int(h) for h in mlp_hidden]
+        self.in_channels, self.out_channels, self.width = int(in_channels), int(out_channels), int(width)
+        self.first_lin = nn.Linear(in_channels, width)
+        self.blocks = nn.ModuleList(
+            DiffusionNetBlock(width, hidden, dropout, with_gradient_features, with_gradient_rotations)
+            for _ in range(n_blocks)
+        )
+        self.last_lin = nn.Linear(width, out_channels)
+        act = LAST_ACTIVATIONS[last_activation]
+        self.last_activation = act() if act is not None else None
+
+    def forward(
+        self,
+        x: torch.Tensor,
+        evals: torch.Tensor,
+        evecs: torch.Tensor,
+        mass: torch.Tensor,
+        grad_x: torch.Tensor,
+        grad_y: torch.Tensor,
+    ) -> torch.Tensor:
+        """Per-vertex features.
+
+        Parameters
+        ----------
+        x : (n, C_in) float
+        evals : (k,) float
+        evecs : (n, k) float
+            Mass-orthonormal eigenbasis.
+        mass : (n,) float
+        grad_x, grad_y : (n, n) torch sparse float
+            Tangent-frame gradient operators (:func:`shapecorr.geometry.diffusion_operators.spatial_gradient`).
+
+        Returns
+        -------
+        (n, C_out) float
+        """
+        n = x.shape[0]
+        if x.ndim != 2 or x.shape[1] != self.in_channels:
+            raise ConfigError(f"DiffusionNet expects input of shape (n, {self.in_channels}), got {tuple(x.shape)}")
+        if evecs.shape[0] != n or mass.shape != (n,) or evals.shape != (evecs.shape[1],):
+            raise ConfigError(
+                f"DiffusionNet operators do not fit the input with {n} vertices: evals {tuple(evals.shape)}, "
+                f"evecs {tuple(evecs.shape)}, mass {tuple(mass.shape)}"
+            )
+        if tuple(grad_x.shape) != (n, n) or tuple(grad_y.shape) != (n, n):
+            raise ConfigError(f"gradient operators must be ({n}, {n}), got {tuple(grad_x.shape)}, {tuple(grad_y.shape)}")
+        h = self.first_lin(x)
+        for block in self.blocks:
+            h = block(h, evals, evecs, mass, grad_x, grad_y)
+        out = self.last_lin(h)
+        if self.last_activation is not None:
+            out = self.last_activation(out)
+        return out
+
+
+class DiffusionNetBackbone(Backbone):
+    """DiffusionNet as a backbone (:mod:`shapecorr.nn.backbone`): features of a sample at its vertices.
+
+    Reads ``sample.operators["eigenbasis"]`` (``evals``, ``evecs``, ``mass``; the first ``k_eig`` pairs are used),
+    ``sample.operators["diffusion_gradients"]`` (``grad_x``, ``grad_y``, torch sparse) and the input: the
+    vertex positions ``sample.verts`` (``input_features="xyz"``, G-MSM's setting) or a descriptor
+    ``sample.operators[name][name]`` (e.g. ``"hks"``, ``"wks"``; ``in_channels`` must then be its length).
+
+    Parameters
+    ----------
+    input_features : str
+        ``"xyz"`` or the name of a descriptor operator.
+    in_channels : int, optional
+        Input channels; 3 for xyz (default), required for a descriptor.
+    descriptor_params : mapping, optional
+        Parameters of the descriptor operator request (e.g. ``{"count": 16}``).
+    k_eig : int
+        Eigenpairs used by the diffusion (published 128).
+    out_channels, width, n_blocks, mlp_hidden, dropout, with_gradient_features, with_gradient_rotations,
+    last_activation
+        See :class:`DiffusionNet`.
+    """
+
+    def __init__(
+        self,
+        input_features: str = XYZ_INPUT,
+        in_channels: int | None = None,
+        descriptor_params: Mapping[str, Any] | None = None,
+        k_eig: int = DEFAULT_K_EIG,
+        out_channels: int = DEFAULT_OUT_CHANNELS,
+        width: int = DEFAULT_WIDTH,
+        n_blocks: int = DEFAULT_BLOCKS,
+        mlp_hidden: Sequence[int] | None = None,
+        dropout: float = DEFAULT_DROPOUT,
+        with_gradient_features: bool = True,
+        with_gradient_rotations: bool = True,
+        last_activation: str | None = None,
+    ):
+        super().__init__()
+        if input_features == XYZ_INPUT:
+            in_channels = 3 if in_channels is None else in_channels
+            if in_channels != 3:
+                raise ConfigError(f"xyz input has 3 channels, got in_channels={in_channels}")
+        elif in_channels is None:
+            raise ConfigError(
+                f"DiffusionNet backbone with descriptor input {input_features!r} needs in_channels (the descriptor "
+                "length): set model.backbone.in_channels"
+            )
+        if k_eig < 1:
+            raise ConfigError(f"k_eig must be >= 1, got {k_eig}")
+        self.input_features = str(input_features)
+        self.k_eig = int(k_eig)
+        self.out_channels = int(out_channels)
+        self.net = DiffusionNet(
+            int(in_channels), out_channels, width, n_blocks, mlp_hidden, dropout,
+            with_gradient_features, with_gradient_rotations, last_activation,
+        )
+        request: dict[str, dict[str, Any]] = {"eigenbasis": {"k": self.k_eig}, "diffusion_gradients": {}}
+        if self.input_features != XYZ_INPUT:
+            request[self.input_features] = dict(descriptor_params or {})
+        self.required_operators = request
+
+    def _input(self, sample, dtype, device) -> torch.Tensor:
+        if self.input_features == XYZ_INPUT:
+            x = sample.verts
+        else:
+            x = sample.operators[self.input_features][self.input_features]
+        return torch.as_tensor(x, dtype=dtype, device=device)
+
+    def forward(self, sample, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """Features ``(n, C)`` at every vertex, or ``(len(rows), C)`` at the vertices ``rows (r,)`` int64."""
+        p = self.net.first_lin.weight
+        dtype, device = p.dtype, p.device
+        eig = sample.operators["eigenbasis"]
+        grads = sample.operators["diffusion_gradients"]
+        evals = torch.as_tensor(eig["evals"], dtype=dtype, device=device)
+        evecs = torch.as_tensor(eig["evecs"], dtype=dtype, device=device)
+        if evals.shape[0] < self.k_eig or evecs.shape[1] < self.k_eig:
+            raise ConfigError(
+                f"DiffusionNet backbone needs {self.k_eig} eigenpairs but the sample has {evecs.shape[1]}: request "
+                f"eigenbasis k >= {self.k_eig} (the backbone's required_operators) or lower model.backbone.k_eig"
+            )
+        evals, evecs = evals[: self.k_eig], evecs[:, : self.k_eig]
+        mass = torch.as_tensor(eig["mass"], dtype=dtype, device=device)
+        grad_x = grads["grad_x"].to(device=device, dtype=dtype)
+        grad_y = grads["grad_y"].to(device=device, dtype=dtype)
+        out = self.net(self._input(sample, dtype, device), evals, evecs, mass, grad_x, grad_y)
+        if not torch.isfinite(out).all():
+            raise NumericalError("DiffusionNet produced NaN/Inf features (check the operators and the input)")
+        return out if rows is None else out[rows]
+
+
+__all__ = [
+    "DiffusionNet",
+    "DiffusionNetBackbone",
+    "DiffusionNetBlock",
+    "GradientFeatures",
+    "LearnedTimeDiffusion",
+    "spectral_diffusion",
+]
