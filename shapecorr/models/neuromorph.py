@@ -39,8 +39,12 @@ vertices need ~160 MB for the similarities instead of 400 MB per soft map.
 
 Decisions on the original's [BUG?] items (methods-digest §4.2, §4.5, §8): global max-pool over vertices
 (``pool="global"``; original: per-vertex max over channels, ``"channel"``), detached ARAP rotations and the
-"both-sides" ARAP energy (loss config; original: differentiated SVD, "average" of the two rotations), no
-rotation at test time (the original rotated test pairs randomly as well).
+"both-sides" ARAP energy (loss config; original: differentiated SVD, "average" of the two rotations), counted
+with the original's edge multiplicity (``arap_edge_weight_scale=0.5``: on the parity reference pairs the energy
+is 5.9 % above the original's, the difference of the two energies, not a factor 2), zero-initialized residual
+biases (``residual_init``), no rotation at test time (the original rotated test pairs randomly as well).
+``model=neuromorph_original`` sets the original's choices on all of these and reproduces its features, maps,
+frames and loss terms on identical inputs (``tests/models/test_neuromorph_parity.py``).
 
 Which terms train the features (``map_gradient``). Published: all of them. The registration term also moves the
 soft maps towards the interpolator's current end point, which early in training is far from any isometric map;
@@ -105,6 +109,9 @@ from shapecorr.viz.tensorboard import summary_writer
 DEFAULT_LR = 1e-4
 #: Published loss weights (methods-digest §4.5): E_align 1, E_arap 1, E_geo 50 (the latter scheduled to 0).
 DEFAULT_LOSS_WEIGHTS = {"registration": 1.0, "arap": 1.0, "geo": 50.0}
+#: ARAP edge weight per face containing the edge. The original lists each face edge once (interior edges twice);
+#: with the both-sides energy (two residuals per listed edge) 0.5 gives the original's number of residuals.
+DEFAULT_ARAP_EDGE_WEIGHT_SCALE = 0.5
 #: Name of the loss term needing geodesic matrices (their lookup is skipped while its weight is 0).
 DEFAULT_GEO_TERM = "geo"
 #: Frames returned by ``match`` (project choice: quarter steps from x to its image on y).
@@ -156,6 +163,9 @@ class NeuroMorph(CorrespondenceModule):
     feature_dim, hidden_channels, n_blocks, pool
         Network options (published: 128, 128, 5 EdgeConv layers; pool "global" is our decision, "channel"
         the original's).
+    residual_init : {"zero", "original"}
+        Initialization of the residual blocks' last layer: "zero" (weight and bias, ours) or "original" (weight
+        only, the original code; :class:`~shapecorr.nn.edgeconv.ResnetBlockFC`).
     sigma : float
         Softmax inverse temperature (published 100).
     n_intermediate : int
@@ -172,9 +182,10 @@ class NeuroMorph(CorrespondenceModule):
         an :class:`~shapecorr.models.schedules.EpochSchedule` (``target: map_gradient``). See README,
         "NeuroMorph: why map_gradient exists".
     arap_edge_weight_scale : float, optional
-        ARAP edge weights = scale x (faces containing the edge); None = uniform weights. 1 with the
-        "both-sides" energy has the original code's energy scale (4 residuals per interior edge); 2 with
-        mode "average" reproduces its sums exactly (see :mod:`shapecorr.losses.arap`).
+        ARAP edge weights = scale x (faces containing the edge); None = uniform weights. The original code
+        lists every face edge once (an interior edge twice), so 1 with mode "average" reproduces its sums
+        exactly; 0.5 (default) with the "both-sides" energy counts every residual of an interior edge once
+        per end, the original's scale (2 residuals per interior edge; see :mod:`shapecorr.losses.arap`).
     geo_term : str
         Loss term that needs the geodesic matrices.
     augment : mapping, optional
@@ -182,8 +193,10 @@ class NeuroMorph(CorrespondenceModule):
         variants, axis).
     query_resolution : int, optional
         Working resolution of queries (and of training without remeshing); None = the shapes as given.
-    geodesics : {"heat", "exact"}
-        Geodesic method for the training distance matrices.
+    geodesics : {"heat", "exact", "original"}
+        Training distance matrices: heat or exact geodesics of every remesh, or "original", the original's
+        preprocessing (exact geodesics of the ``query_resolution`` mesh, clamped, sub-matrices for lower
+        resolutions; :mod:`shapecorr.data.augmentation`).
     match_chunk_size : int
         Rows of x per similarity block in queries.
     cache_dir : str, optional
@@ -200,12 +213,13 @@ class NeuroMorph(CorrespondenceModule):
         hidden_channels: int = DEFAULT_HIDDEN,
         n_blocks: int = DEFAULT_N_BLOCKS,
         pool: str = "global",
+        residual_init: str = "zero",
         sigma: float = DEFAULT_SIGMA,
         n_intermediate: int = 0,
         eval_times: Sequence[float] = DEFAULT_EVAL_TIMES,
         lr: float = DEFAULT_LR,
         map_gradient: str = "all",
-        arap_edge_weight_scale: float | None = 1.0,
+        arap_edge_weight_scale: float | None = DEFAULT_ARAP_EDGE_WEIGHT_SCALE,
         geo_term: str = DEFAULT_GEO_TERM,
         augment: Mapping[str, Any] | None = None,
         query_resolution: int | None = None,
@@ -238,8 +252,8 @@ class NeuroMorph(CorrespondenceModule):
             raise ConfigError(f"neuromorph: match_chunk_size must be >= 1, got {match_chunk_size}")
         if loss is not None and not isinstance(loss, WeightedLoss):
             raise ConfigError(f"neuromorph: loss must be a WeightedLoss, got {type(loss).__name__}")
-        self.feature_net = NeuroMorphFeatureNet(feature_dim, hidden_channels, n_blocks, pool)
-        self.interpolator = NeuroMorphInterpolator(hidden_channels, n_blocks, pool)
+        self.feature_net = NeuroMorphFeatureNet(feature_dim, hidden_channels, n_blocks, pool, residual_init)
+        self.interpolator = NeuroMorphInterpolator(hidden_channels, n_blocks, pool, residual_init)
         self.loss = default_loss() if loss is None else loss
         self.sigma = float(sigma)
         self.n_intermediate = n_intermediate
