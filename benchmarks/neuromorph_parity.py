@@ -16,6 +16,9 @@
    of the 2000-vertex working remesh of a FAUST_r shape once; timed on ``--exact-sources`` sources and
    extrapolated to all pairs (seconds per shape), next to the heat method on all pairs of the same remesh and
    the sub-matrix extraction for a 1000-vertex remesh.
+4. Truncated soft maps in the geodesic term (the speed option considered for the 0.5 s / 1.7 s step targets):
+   the accuracy cost of keeping the k largest entries per row of Pi (value error, gradient cosine) and the time
+   of the full geodesic term at 2000 vertices (the most a truncation could save).
 
 Results go to ``benchmarks/results/neuromorph_parity.json`` with the command, date, machine and versions.
 """
@@ -159,6 +162,71 @@ def geodesic_cost(faust_r: Path, exact_sources: int) -> dict:
                     "remesh then costs only the sub-matrix. Per-remesh heat matrices cost the heat time per remesh."}
 
 
+def truncated_soft_map(pi, k: int):
+    """Pi with only its k largest entries per row kept, rows renormalized (differentiable in the kept entries)."""
+    import torch
+
+    idx = pi.topk(k, dim=1).indices
+    kept = torch.zeros_like(pi).scatter(1, idx, pi.gather(1, idx))
+    return kept / kept.sum(1, keepdim=True)
+
+
+def geo_topk_accuracy(golden: Path, ks=(16, 64, 256), sigmas=(100.0, 400.0, 1600.0)) -> dict:
+    """Accuracy cost of a top-k truncated soft map in the geodesic term, on the golden pairs.
+
+    Soft maps from the original's features (the untrained network) at the published sigma 100, and sharper maps
+    (sigma 400, 1600) standing in for a trained network's; per k: the mass the k largest entries keep, the
+    relative error of the loss value and the cosine between the truncated and the full gradient dE/dPi.
+    """
+    import torch
+
+    from shapecorr.losses.geodesic_distortion import geodesic_distortion_loss
+
+    rows = {}
+    for pair in PAIRS:
+        inp, out = np.load(golden / f"inputs_{pair}.npz"), np.load(golden / f"outputs_{pair}.npz")
+        sim = torch.from_numpy(out["feat_x"]).double() @ torch.from_numpy(out["feat_y"]).double().T
+        dx, dy = (torch.from_numpy(inp[f"geodesic_{s}"]).double() for s in "xy")
+        sim.requires_grad_(True)
+        for sigma in sigmas:
+            # gradients w.r.t. the similarities (the softmax input): a row-constant part of dE/dPi is meaningless
+            pi = torch.softmax(sigma * sim, dim=1)
+            full = geodesic_distortion_loss(pi, dx, dy)
+            (g_full,) = torch.autograd.grad(full, sim, retain_graph=True)
+            for k in ks:
+                pik = truncated_soft_map(pi, k)
+                trunc = geodesic_distortion_loss(pik, dx, dy)
+                (g_k,) = torch.autograd.grad(trunc, sim, retain_graph=True)
+                cos = float((g_k * g_full).sum() / (g_k.norm() * g_full.norm()))
+                mass = float(pi.detach().topk(k, dim=1).values.sum(1).mean())
+                full_v, trunc_v = float(full.detach()), float(trunc.detach())
+                rows[f"{pair} sigma={sigma:g} k={k}"] = {
+                    "kept_mass_mean": mass, "loss_full": full_v, "loss_topk": trunc_v,
+                    "loss_relative_error": abs(trunc_v - full_v) / full_v, "gradient_cosine": cos}
+    return rows
+
+
+def geo_term_seconds(n: int = WORKING_RESOLUTION, repeats: int = 3) -> dict:
+    """Wall seconds of the full geodesic term, forward + backward, at n x n (the part a truncation could save)."""
+    import torch
+
+    from shapecorr.losses.geodesic_distortion import geodesic_distortion_loss
+
+    gen = torch.Generator().manual_seed(0)
+    pts = torch.randn(n, 3, generator=gen)
+    dist = torch.cdist(pts, pts)
+    dist = 0.5 * (dist + dist.T)  # symmetric, as geodesic matrices (the loss's fast path)
+    logits = torch.randn(n, n, generator=gen)
+    times = []
+    for _ in range(repeats + 1):
+        pi = torch.softmax(logits, dim=1).requires_grad_(True)
+        start = time.perf_counter()
+        geodesic_distortion_loss(pi, dist, dist).backward()
+        times.append(time.perf_counter() - start)
+    return {"n": n, "threads": torch.get_num_threads(), "seconds_fwd_bwd_median": float(np.median(times[1:])),
+            "load_average_after": list(os.getloadavg())}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--golden", default=os.environ.get("SHAPECORR_NEUROMORPH_GOLDEN"),
@@ -207,6 +275,12 @@ def main(argv=None) -> int:
                             "relative": "max abs difference / max abs of the original's array (scalars: relative "
                                         "difference); relative_frobenius for arrays"},
                "parity": parity}
+    summary["geo_topk_accuracy"] = geo_topk_accuracy(golden)
+    summary["geo_term_cost"] = geo_term_seconds()
+    for key, row in summary["geo_topk_accuracy"].items():
+        print(f"{key}: mass {row['kept_mass_mean']:.3f} loss err {row['loss_relative_error']:.3f} "
+              f"grad cos {row['gradient_cosine']:.3f}", flush=True)
+    print(summary["geo_term_cost"], flush=True)
     if args.faust_r:
         summary["geodesic_preprocessing"] = geodesic_cost(Path(args.faust_r), args.exact_sources)
         print(summary["geodesic_preprocessing"], flush=True)
