@@ -143,9 +143,10 @@ def geodesic_cost(faust_r: Path, exact_sources: int) -> dict:
     low = remesh_with_correspondence(verts, faces, LOWER_RESOLUTION)
     n = work.n_verts
     sources = np.linspace(0, n - 1, exact_sources).astype(np.int64)
-    start = time.perf_counter()
+    start, start_cpu = time.perf_counter(), time.process_time()
     geodesic_distances(work.verts, work.faces, sources=sources, method="exact")
     exact_per_source = (time.perf_counter() - start) / sources.size
+    exact_cpu_per_source = (time.process_time() - start_cpu) / sources.size
     start = time.perf_counter()
     heat = geodesic_distances(work.verts, work.faces, method="heat")
     heat_seconds = time.perf_counter() - start
@@ -156,6 +157,8 @@ def geodesic_cost(faust_r: Path, exact_sources: int) -> dict:
     return {"shape": TIMING_SHAPE, "working_vertices": n, "lower_vertices": low.n_verts,
             "exact_sources_timed": int(sources.size), "exact_seconds_per_source": exact_per_source,
             "exact_all_pairs_seconds_per_shape_extrapolated": exact_per_source * n,
+            "exact_all_pairs_cpu_seconds_per_shape_extrapolated": exact_cpu_per_source * n,
+            "load_average_after": list(os.getloadavg()),
             "heat_all_pairs_seconds_per_shape": heat_seconds,
             "submatrix_seconds_per_lower_resolution_remesh": sub_seconds, "submatrix_shape": list(sub.shape),
             "note": "geodesics=original computes the exact matrix once per shape (cached); every lower-resolution "
@@ -217,13 +220,15 @@ def geo_term_seconds(n: int = WORKING_RESOLUTION, repeats: int = 3) -> dict:
     dist = torch.cdist(pts, pts)
     dist = 0.5 * (dist + dist.T)  # symmetric, as geodesic matrices (the loss's fast path)
     logits = torch.randn(n, n, generator=gen)
-    times = []
+    times, cpu = [], []
     for _ in range(repeats + 1):
         pi = torch.softmax(logits, dim=1).requires_grad_(True)
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         geodesic_distortion_loss(pi, dist, dist).backward()
         times.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
     return {"n": n, "threads": torch.get_num_threads(), "seconds_fwd_bwd_median": float(np.median(times[1:])),
+            "cpu_seconds_fwd_bwd_median": float(np.median(cpu[1:])),
             "load_average_after": list(os.getloadavg())}
 
 
