@@ -17,8 +17,9 @@ same weight shapes, so checkpoints stay interchangeable in shape (not in meaning
 
 Channel layout. A layer after the first receives the per-vertex channels ``x = [net, p]`` (features and
 network input) and the pooled channels ``s``, in this order: its message is ``[x_i, s_i, x_j - x_i,
-s_j - s_i]``. (The original orders its concatenation ``[net, pool, p]``; a weight port must permute the
-input columns of ``fc0`` and ``shortcut`` accordingly.)
+s_j - s_i]``. (The original orders its concatenation ``[net, pool, p]``;
+:func:`shapecorr.nn.neuromorph_weights.load_original_neuromorph_weights` permutes the input columns of ``fc0``
+and ``shortcut`` accordingly.)
 
 Fast path (``fast=True``, default). Exact algebraic restructurings of the same function (tests compare
 it with the plain per-edge formulation, values and gradients, in float64):
