@@ -58,11 +58,11 @@ import sys
 import time
 from pathlib import Path
 
+import bench_common
 import igl
 import numpy as np
 import torch
 
-import bench_common
 from shapecorr.data.shape import make_shape
 from shapecorr.geometry.geodesics import geodesic_distances
 from shapecorr.geometry.mesh_graph import undirected_edges
@@ -71,7 +71,11 @@ from shapecorr.losses.geodesic_distortion import geodesic_distortion_loss
 from shapecorr.losses.registration import registration_loss
 from shapecorr.matching.softmax import DEFAULT_SIGMA, hard_maps, softmax_soft_maps
 from shapecorr.models.neuromorph import DEFAULT_ARAP_EDGE_WEIGHT_SCALE
-from shapecorr.nn.neuromorph import NeuroMorphFeatureNet, NeuroMorphInterpolator, interpolation_times
+from shapecorr.nn.neuromorph import (
+    NeuroMorphFeatureNet,
+    NeuroMorphInterpolator,
+    interpolation_times,
+)
 
 #: Target number of vertices (NeuroMorph trains on 2000-vertex FAUST_r remeshes, methods-digest §4.1).
 TARGET_VERTS = 2000

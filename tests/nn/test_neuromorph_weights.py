@@ -13,7 +13,10 @@ from shapecorr.errors import ConfigError
 from shapecorr.geometry.mesh_graph import undirected_edges
 from shapecorr.nn.edgeconv import ResnetBlockFC, ResnetEC
 from shapecorr.nn.neuromorph import NeuroMorphFeatureNet, NeuroMorphInterpolator
-from shapecorr.nn.neuromorph_weights import load_original_neuromorph_weights, load_original_resnet_ec
+from shapecorr.nn.neuromorph_weights import (
+    load_original_neuromorph_weights,
+    load_original_resnet_ec,
+)
 
 DTYPE = torch.float64
 H, BLOCKS = 8, 3
@@ -40,7 +43,7 @@ def _original_state(prefix: str, dim: int, out: int, seed: int) -> dict[str, tor
 def _original_forward(state, prefix, p, directed):
     """The original ResnetECPos, edge by edge: messages nn([x_i, x_j - x_i]) maxed over j -> i."""
     s = {k[len(prefix) + 1:]: v.to(DTYPE) for k, v in state.items() if k.startswith(prefix)}
-    lin = lambda name, x, bias=True: x @ s[f"{name}.weight"].T + (s[f"{name}.bias"] if bias else 0.0)  # noqa: E731
+    lin = lambda name, x, bias=True: x @ s[f"{name}.weight"].T + (s[f"{name}.bias"] if bias else 0.0)
     src, dst = directed
 
     def edgeconv(k, x):
