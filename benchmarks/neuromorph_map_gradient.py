@@ -11,7 +11,12 @@ its argmax map on those very pairs is recorded every ``--log-every`` steps. Vari
 * ``geodesic``: only the geodesic term trains the soft maps (``map_gradient=geodesic``); registration and ARAP
   still train the interpolator;
 * ``geodesic_then_published``: ``geodesic`` for ``--steps`` steps, then ``--switch-steps`` more steps of
-  ``published`` from there (does the fitted map survive the registration gradient?).
+  ``published`` from there (does the fitted map survive the registration gradient?);
+* ``original_preset``: ``published`` with the original code's choices (``model=neuromorph_original``: channel
+  pooling, original residual init, ARAP "average" differentiated through the rotations at face-edge weights),
+  on the same heat geodesics, to compare with the original code's run on these pairs (README).
+
+``--variants`` selects a subset.
 
 Errors are at the working resolution: the geodesic distance on y (working-resolution remesh, the training
 geodesics) between the image of each reference point and its ground truth, over sqrt(area(y)), in percent.
@@ -33,6 +38,7 @@ REPO = Path(__file__).resolve().parents[1]
 RESULT = REPO / "benchmarks" / "results" / "neuromorph_map_gradient.json"
 DEFAULT_PAIRS = ("tr_reg_000:tr_reg_013", "tr_reg_013:tr_reg_000", "tr_reg_021:tr_reg_046", "tr_reg_046:tr_reg_021")
 PERCENT = 100.0
+VARIANTS = ("published", "geodesic", "geodesic_then_published", "original_preset")
 
 
 def load_pairs(faust_r: str | None, names: list[tuple[str, str]]):
@@ -84,6 +90,16 @@ class TermRecorder:
         return total, values
 
 
+def original_loss():
+    """The loss of ``model=neuromorph_original`` (configs/loss/neuromorph_original.yaml)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        cfg = compose("train", overrides=["model=neuromorph_original"])
+    return instantiate(cfg.model.loss, _convert_="object")
+
+
 def train(model, optimizer, pairs, augmented, steps: int, log_every: int, first_step: int = 0) -> list[dict]:
     """``steps`` optimizer steps (each on the summed loss of all pairs); a row every ``log_every`` steps with the
     errors before that step and the loss terms of that step."""
@@ -112,17 +128,23 @@ def train(model, optimizer, pairs, augmented, steps: int, log_every: int, first_
 def run(args) -> dict:
     import torch
 
-    from shapecorr.models.neuromorph import NeuroMorph
+    from shapecorr.models.neuromorph import DEFAULT_ARAP_EDGE_WEIGHT_SCALE, NeuroMorph
+    from shapecorr.nn.edgeconv_backbone import EdgeConvBackbone
 
     torch.set_num_threads(args.threads)
     names = [tuple(p.split(":")) for p in args.pairs]
     pairs = load_pairs(args.faust_r, names)
     variants = {}
-    for variant in ("published", "geodesic", "geodesic_then_published"):
+    for variant in args.variants:
         torch.manual_seed(args.seed)
-        mode = "all" if variant == "published" else "geodesic"
+        mode = "all" if variant in ("published", "original_preset") else "geodesic"
+        options = {}
+        if variant == "original_preset":
+            options = dict(backbone=EdgeConvBackbone(pool="channel", residual_init="original"),
+                           interpolator=dict(hidden_channels=128, n_blocks=5, pool="channel", residual_init="original"),
+                           arap_edge_weight_scale=1.0, loss=original_loss())
         model = NeuroMorph(query_resolution=args.resolution, augment=dict(remesh=False, rotate=False),
-                           map_gradient=mode, seed=args.seed)
+                           map_gradient=mode, seed=args.seed, **options)
         optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
         augmented = [model.augmenter(pairs[k], None, geodesics=True) for k in range(len(pairs))]
         start = time.perf_counter()
@@ -139,6 +161,7 @@ def run(args) -> dict:
         "settings": {"working_resolution": args.resolution, "steps": args.steps, "switch_steps": args.switch_steps,
                      "lr": args.lr, "seed": args.seed, "threads": args.threads,
                      "loss": "published weights: registration 1, ARAP 1, geodesic 50; T = 0",
+                     "arap_edge_weight_scale_default": DEFAULT_ARAP_EDGE_WEIGHT_SCALE,
                      "augmentation": "none (fixed working-resolution remesh, no rotation)"},
         "units": "mean geodesic error of the argmax map on the training pairs, percent of sqrt(area(y))",
         "variants": variants,
@@ -158,6 +181,7 @@ def main(argv=None) -> int:
     parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
     parser.add_argument("--seed", type=int, default=0, help="network initialization seed")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS, help="variants to run")
     parser.add_argument("--out", default=str(RESULT), help="output JSON")
     args = parser.parse_args(argv)
     if args.faust_r is None:

@@ -40,6 +40,15 @@ a step's draws come from a generator seeded with ``(seed, epoch, position)``, ``
 place in the epoch (the batch index), so a run resumed mid-epoch, whose sampler starts at the same position,
 draws what the uninterrupted run would have drawn, and the draws are those of the former in-model
 augmentation (``default_rng([seed, epoch, batch index])``).
+
+Geodesic matrices (``geodesics``): ``"heat"`` (default) or ``"exact"`` matrices of each remesh itself, or
+``"original"``, the NeuroMorph preprocessing: exact geodesics of the *working-resolution* mesh only (the
+``max_vertices`` remesh, else the shape as given), entries above 100 (unreachable pairs) set to 2, and for every
+lower-resolution remesh the sub-matrix of that matrix at the working-resolution vertex nearest to each remesh
+vertex. The original's remesher kept a subset of the working mesh's vertices, so its sub-matrices were exact;
+ours moves vertices, so a sub-matrix entry is the exact distance between the nearest working-resolution
+vertices (off by at most about one working-resolution edge length). One exact matrix per shape instead of one
+per remesh; its cost is measured in ``benchmarks/neuromorph_parity.py``.
 """
 
 from __future__ import annotations
@@ -57,7 +66,7 @@ from torch.utils.data import Dataset
 
 from shapecorr.data.cache import ShapeCache, content_hash
 from shapecorr.data.datasets import PairDataset, PairSample, ShapeSample
-from shapecorr.data.operators import geodesics_cached
+from shapecorr.data.operators import OPERATOR_VERSIONS, geodesics_cached
 from shapecorr.data.shape import Shape, triangle_areas
 from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.geometry.remeshing import (
@@ -78,6 +87,11 @@ DEFAULT_UP_AXIS = "y"
 AXES = {"x": 0, "y": 1, "z": 2}
 #: Geodesic method for remeshed shapes (shapecorr.geometry.geodesics; the original used fast marching).
 DEFAULT_GEODESICS = "heat"
+#: Geodesic matrices of the augmented shapes: per remesh (heat / exact) or the original's preprocessing.
+GEODESIC_OPTIONS = ("heat", "exact", "original")
+#: NeuroMorph code (data/data.py): distance-matrix entries above 100 (unreachable pairs) are replaced by 2.
+ORIGINAL_GEODESIC_CLAMP_ABOVE = 100.0
+ORIGINAL_GEODESIC_CLAMP_VALUE = 2.0
 #: Barycentric coordinates outside [-tol, 1 + tol] mean a degenerate closest triangle (clamped, renormalized).
 BARYCENTRIC_TOL = 1e-6
 #: Sub-seed separating the resolution pools from the per-step draws of the same base seed.
@@ -429,8 +443,8 @@ class PairAugmenter:
         many (deterministically, cached); with it, the resolution range is clipped to it as well.
     seed : int
         Seed of the resolution pools.
-    geodesics : {"heat", "exact"}
-        Geodesic method for the distance matrices.
+    geodesics : {"heat", "exact", "original"}
+        Geodesic matrices of each remesh (heat or exact), or the original's preprocessing (module docstring).
     """
 
     def __init__(
@@ -447,6 +461,8 @@ class PairAugmenter:
         self.cache = cache
         self.max_vertices = None if max_vertices is None else int(max_vertices)
         self.seed = int(seed)
+        if geodesics not in GEODESIC_OPTIONS:
+            raise ConfigError(f"geodesics must be one of {GEODESIC_OPTIONS}, got {geodesics!r}")
         self.geodesics = geodesics
 
     def resolutions(self, sample: ShapeSample) -> np.ndarray:
@@ -469,10 +485,62 @@ class PairAugmenter:
             return None
         return cached_remesh(self.cache, shape.verts.detach().cpu(), shape.faces.detach().cpu(), target)
 
-    def distances(self, sample: ShapeSample) -> torch.Tensor:
-        """Cached all-pairs geodesic matrix ``(n, n)`` float32 of a (CPU) sample."""
-        dist = geodesics_cached(self.cache, sample.shape.verts.detach().cpu().numpy(),
-                                sample.shape.faces.detach().cpu().numpy(), method=self.geodesics)
+    def working_geodesics(self, sample: ShapeSample) -> tuple[np.ndarray, np.ndarray]:
+        """The original's distance matrix of a shape: exact geodesics of its working-resolution mesh, clamped.
+
+        Parameters
+        ----------
+        sample : ShapeSample
+            The shape as given (not a remesh), CPU.
+
+        Returns
+        -------
+        verts : (w, 3) float
+            Vertices of the working-resolution mesh (the ``max_vertices`` remesh, else the shape).
+        dist : (w, w) float32
+            Symmetrized exact geodesics, entries above 100 (unreachable) set to 2 (module docstring).
+        """
+        verts, faces = sample.shape.verts.detach().cpu(), sample.shape.faces.detach().cpu()
+        if self.max_vertices is not None and sample.shape.n_verts > self.max_vertices:
+            work = cached_remesh(self.cache, verts, faces, self.max_vertices)
+            v, f = work.verts, work.faces
+        else:
+            v, f = verts.numpy(), faces.numpy()
+
+        def compute():
+            from shapecorr.geometry.geodesics import geodesic_distances
+
+            dist = geodesic_distances(v, f, method="exact", allow_disconnected=True)
+            dist[~(dist <= ORIGINAL_GEODESIC_CLAMP_ABOVE)] = ORIGINAL_GEODESIC_CLAMP_VALUE
+            return {"geodesics": dist.astype(np.float32)}
+
+        params = {"method": "exact", "clamp_above": ORIGINAL_GEODESIC_CLAMP_ABOVE,
+                  "clamp_value": ORIGINAL_GEODESIC_CLAMP_VALUE}
+        dist = self.cache.get_or_compute("geodesics", v, f, params, OPERATOR_VERSIONS["geodesics"], compute)
+        return np.asarray(v), dist["geodesics"]
+
+    def distances(self, sample: ShapeSample, original: ShapeSample | None = None) -> torch.Tensor:
+        """Cached all-pairs geodesic matrix ``(n, n)`` float32 of a (CPU) sample.
+
+        Parameters
+        ----------
+        sample : ShapeSample
+            The shape the network sees (a remesh or the shape as given).
+        original : ShapeSample, optional
+            The shape as given, of which ``sample`` is a remesh; needed by ``geodesics="original"`` (default:
+            ``sample`` itself).
+        """
+        if self.geodesics == "original":
+            work_verts, work_dist = self.working_geodesics(sample if original is None else original)
+            verts = sample.shape.verts.detach().cpu().numpy()
+            if verts.shape == work_verts.shape and np.array_equal(verts, work_verts):
+                dist = work_dist
+            else:
+                _, nearest = cKDTree(work_verts.astype(np.float64)).query(verts.astype(np.float64), k=1)
+                dist = work_dist[np.ix_(nearest, nearest)]
+        else:
+            dist = geodesics_cached(self.cache, sample.shape.verts.detach().cpu().numpy(),
+                                    sample.shape.faces.detach().cpu().numpy(), method=self.geodesics)
         if not np.isfinite(dist).all():
             raise NumericalError(f"{sample.name}: geodesic matrix contains NaN/Inf (disconnected remesh?)")
         return torch.from_numpy(np.ascontiguousarray(dist, dtype=np.float32))
@@ -494,13 +562,14 @@ class PairAugmenter:
         -------
         AugmentedPair
         """
-        samples, remeshes = [], []
+        samples, remeshes, originals = [], [], []
         for sample in (pair.x, pair.y):
             sample = _geometry_only(sample)
             remeshed = self.working_remesh(sample, rng)
             remeshes.append(remeshed)
+            originals.append(sample)
             samples.append(sample if remeshed is None else remeshed_sample(sample, remeshed))
-        dists = [self.distances(s) for s in samples] if geodesics else [None, None]
+        dists = [self.distances(s, o) for s, o in zip(samples, originals)] if geodesics else [None, None]
         rotation = torch.eye(3)
         if self.config.rotate:
             if rng is None:

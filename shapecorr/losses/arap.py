@@ -31,10 +31,16 @@ Gradients and the rotations (``detach_rotations``):
   differentiates through ``torch.svd``.
 
 Edges and weights. ``edges`` are undirected vertex pairs (``shapecorr.geometry.mesh_graph.undirected_edges``)
-with optional non-negative weights (default 1). The NeuroMorph code lists every triangle edge per face in
-both directions, so its sums count an edge ``2 * (number of faces containing it)`` times:
-``edge_weights = 2 * counts`` reproduces them exactly (both energy and rotations); uniform weights give the
-same rotations on a closed mesh and half the energy.
+with optional non-negative weights (default 1). The NeuroMorph code lists every triangle edge once per face, in
+one direction (``(f0, f1), (f0, f2), (f1, f2)`` of every face; the edge list with both directions is its
+EdgeConv graph, not its ARAP one), so its sums count an edge ``counts`` times (the number of faces containing
+it: twice for an interior edge). ``edge_weights = counts`` with ``mode="average"`` reproduces the original
+exactly, energy and rotations (``model=neuromorph_original``; parity-tested on the original's outputs).
+``mode="both-sides"`` has two residuals per listed edge, so ``edge_weights = 0.5 * counts`` (NeuroMorph's
+default ``arap_edge_weight_scale``) gives it the original's number of residuals; on a closed mesh this is
+uniform weight 1, the classic energy. Measured on the two parity reference pairs (``benchmarks/neuromorph_parity.py``):
+both-sides at ``0.5 * counts`` is 5.9 % above the original's value (0.009395 vs 0.008870 and 0.009908 vs
+0.009358), the difference between the two energies; at ``counts`` it would be twice that (0.01874).
 """
 
 from __future__ import annotations
@@ -228,7 +234,7 @@ def arap_energy(
     edges : (E, 2) int64
         Undirected edges.
     edge_weights : (E,) float, optional
-        Non-negative weights (default 1); ``2 * face counts`` reproduces the NeuroMorph sums.
+        Non-negative weights (default 1); the face counts with ``mode="average"`` reproduce the NeuroMorph sums.
     rotations : (..., n, 3, 3) float, optional
         Precomputed rotations (used as given; ``detach_rotations`` is then ignored).
     mode : {"both-sides", "average"}

@@ -44,8 +44,12 @@ vertices need ~160 MB for the similarities instead of 400 MB per soft map.
 
 Decisions on the original's [BUG?] items (docs/neuromorph.md): global max-pool over vertices
 (``pool="global"``; original: per-vertex max over channels, ``"channel"``), detached ARAP rotations and the
-"both-sides" ARAP energy (loss config; original: differentiated SVD, "average" of the two rotations), no
-rotation at test time (the original rotated test pairs randomly as well).
+"both-sides" ARAP energy (loss config; original: differentiated SVD, "average" of the two rotations), counted
+with the original's edge multiplicity (``arap_edge_weight_scale=0.5``: on the parity reference pairs the energy
+is 5.9 % above the original's, the difference of the two energies, not a factor 2), zero-initialized residual
+biases (``residual_init``), no rotation at test time (the original rotated test pairs randomly as well).
+``model=neuromorph_original`` sets the original's choices on all of these and reproduces its features, maps,
+frames and loss terms on identical inputs (``tests/models/test_neuromorph_parity.py``).
 
 Which terms train the features (``map_gradient``). Published: all of them. The registration term also moves the
 soft maps towards the interpolator's current end point, which early in training is far from any isometric map;
@@ -111,13 +115,17 @@ from shapecorr.viz.interpolation import log_interpolation
 DEFAULT_LR = 1e-4
 #: Published loss weights (NeuroMorph paper, CVPR 2021): E_align 1, E_arap 1, E_geo 50 (the latter scheduled to 0).
 DEFAULT_LOSS_WEIGHTS = {"registration": 1.0, "arap": 1.0, "geo": 50.0}
+#: ARAP edge weight per face containing the edge. The original lists each face edge once (interior edges twice);
+#: with the both-sides energy (two residuals per listed edge) 0.5 gives the original's number of residuals.
+DEFAULT_ARAP_EDGE_WEIGHT_SCALE = 0.5
 #: Name of the loss term needing geodesic matrices (their lookup is skipped while its weight is 0).
 DEFAULT_GEO_TERM = "geo"
 #: Frames returned by ``match`` (project choice: quarter steps from x to its image on y).
 DEFAULT_INTERP_TIMES = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: Options of the interpolator network (NeuroMorph code: ResnetECPos, hidden 128, 5 EdgeConv layers; pool "global"
-#: is our decision, the original's is "channel").
-DEFAULT_INTERPOLATOR = {"hidden_channels": DEFAULT_HIDDEN, "n_blocks": DEFAULT_N_BLOCKS, "pool": DEFAULT_POOL}
+#: and residual_init "zero" are our decisions, the original's are "channel" and "original").
+DEFAULT_INTERPOLATOR = {"hidden_channels": DEFAULT_HIDDEN, "n_blocks": DEFAULT_N_BLOCKS, "pool": DEFAULT_POOL,
+                        "residual_init": "zero"}
 #: Query remeshes kept in memory (a validation set's worth; a few hundred kB each).
 QUERY_REMESH_LRU_SIZE = 64
 #: Deep Shells settings that configs/train.yaml and configs/debug/tiny.yaml passed to every model before they
@@ -204,7 +212,9 @@ class NeuroMorph(CorrespondenceModule):
         the default.
     interpolator : mapping, optional
         Options of the interpolator network :class:`~shapecorr.nn.neuromorph.NeuroMorphInterpolator`:
-        ``hidden_channels``, ``n_blocks``, ``pool`` (published 128, 5; pool "global" our decision).
+        ``hidden_channels``, ``n_blocks``, ``pool``, ``residual_init`` (published 128, 5; pool "global" and
+        residual_init "zero" our decisions, "channel" / "original" the original code's, see
+        :class:`~shapecorr.nn.edgeconv.ResnetBlockFC`).
     optimizer, scheduler
         Optimizer / LR-scheduler factories (``model/optimizer``, ``model/scheduler`` nodes, ``_partial_``);
         default Adam 1e-4 (published), no scheduler. Not stored in the hyperparameters.
@@ -222,9 +232,10 @@ class NeuroMorph(CorrespondenceModule):
         an :class:`~shapecorr.models.schedules.EpochSchedule` (``target: map_gradient``). See README,
         "NeuroMorph: why map_gradient exists".
     arap_edge_weight_scale : float, optional
-        ARAP edge weights = scale x (faces containing the edge); None = uniform weights. 1 with the
-        "both-sides" energy has the original code's energy scale (4 residuals per interior edge); 2 with
-        mode "average" reproduces its sums exactly (see :mod:`shapecorr.losses.arap`).
+        ARAP edge weights = scale x (faces containing the edge); None = uniform weights. The original code
+        lists every face edge once (an interior edge twice), so 1 with mode "average" reproduces its sums
+        exactly; 0.5 (default) with the "both-sides" energy counts every residual of an interior edge once
+        per end, the original's scale (2 residuals per interior edge; see :mod:`shapecorr.losses.arap`).
     geo_term : str
         Loss term that needs the geodesic matrices.
     augment : mapping, optional
@@ -232,8 +243,10 @@ class NeuroMorph(CorrespondenceModule):
         variants, axis).
     query_resolution : int, optional
         Working resolution of queries (and of training without remeshing); None = the shapes as given.
-    geodesics : {"heat", "exact"}
-        Geodesic method for the training distance matrices.
+    geodesics : {"heat", "exact", "original"}
+        Training distance matrices: heat or exact geodesics of every remesh, or "original", the original's
+        preprocessing (exact geodesics of the ``query_resolution`` mesh, clamped, sub-matrices for lower
+        resolutions; :mod:`shapecorr.data.augmentation`).
     match_chunk_size : int
         Rows of x per similarity block in queries.
     cache_dir : str, optional
@@ -257,7 +270,7 @@ class NeuroMorph(CorrespondenceModule):
         n_intermediate: int = 0,
         interp_times: Sequence[float] = DEFAULT_INTERP_TIMES,
         map_gradient: str = "all",
-        arap_edge_weight_scale: float | None = 1.0,
+        arap_edge_weight_scale: float | None = DEFAULT_ARAP_EDGE_WEIGHT_SCALE,
         geo_term: str = DEFAULT_GEO_TERM,
         augment: Mapping[str, Any] | None = None,
         query_resolution: int | None = None,
@@ -311,7 +324,8 @@ class NeuroMorph(CorrespondenceModule):
         self.feature_net = backbone
         self._backbone_takes_edges = "edges" in inspect.signature(backbone.forward).parameters
         self.interpolator = NeuroMorphInterpolator(int(interpolator["hidden_channels"]),
-                                                   int(interpolator["n_blocks"]), str(interpolator["pool"]))
+                                                   int(interpolator["n_blocks"]), str(interpolator["pool"]),
+                                                   str(interpolator["residual_init"]))
         self.loss = default_loss() if loss is None else loss
         self.optimizer = adam(DEFAULT_LR) if optimizer is None else optimizer
         self.scheduler = scheduler

@@ -17,8 +17,9 @@ same weight shapes, so checkpoints stay interchangeable in shape (not in meaning
 
 Channel layout. A layer after the first receives the per-vertex channels ``x = [net, p]`` (features and
 network input) and the pooled channels ``s``, in this order: its message is ``[x_i, s_i, x_j - x_i,
-s_j - s_i]``. (The original orders its concatenation ``[net, pool, p]``; a weight port must permute the
-input columns of ``fc0`` and ``shortcut`` accordingly.)
+s_j - s_i]``. (The original orders its concatenation ``[net, pool, p]``;
+:func:`shapecorr.nn.neuromorph_weights.load_original_neuromorph_weights` permutes the input columns of ``fc0``
+and ``shortcut`` accordingly.)
 
 Fast path (``fast=True``, default). Exact algebraic restructurings of the same function (tests compare
 it with the plain per-edge formulation, values and gradients, in float64):
@@ -84,30 +85,43 @@ DEFAULT_HIDDEN = 128
 DEFAULT_N_BLOCKS = 5
 #: Pooling modes: a true max over vertices (paper) or the original code's max over channels per vertex.
 POOL_MODES = ("global", "channel")
+#: Initialization of the residual branch's last layer ``fc1``: "zero" (weight and bias, ours: the block is exactly
+#: its shortcut at initialization) or "original" (the NeuroMorph code, ResnetBlockFC: only the weight is zeroed,
+#: the bias keeps torch's default uniform initialization, so the branch starts as a constant per channel).
+RESIDUAL_INITS = ("zero", "original")
 
 
 class ResnetBlockFC(nn.Module):
     """Pre-activation residual MLP block: ``shortcut(m) + fc1(relu(fc0(relu(m))))``.
 
-    ``fc1`` (weight and bias) is zero-initialized, so at initialization the block is its shortcut. (The
-    NeuroMorph code zeroes ``fc1.weight`` only; zeroing the bias too makes that statement exact.) The
-    shortcut is a bias-free linear map when the input and output widths differ, the identity otherwise.
+    With ``residual_init="zero"`` (default) ``fc1`` (weight and bias) is zero-initialized, so at initialization
+    the block is its shortcut. ``"original"`` zeroes ``fc1.weight`` only, as the NeuroMorph code does (the
+    bias keeps torch's default initialization: the branch starts as a constant per output channel). Both draw
+    the same random numbers (torch's default initialization of every layer, in the same order), so a seed gives
+    the same ``fc0`` and shortcut either way. The shortcut is a bias-free linear map when the input and output
+    widths differ, the identity otherwise.
 
     Parameters
     ----------
     in_channels, out_channels : int
     hidden_channels : int, optional
         Width of ``fc0``'s output; defaults to ``min(in_channels, out_channels)`` (NeuroMorph code).
+    residual_init : {"zero", "original"}
     """
 
-    def __init__(self, in_channels: int, out_channels: int, hidden_channels: int | None = None):
+    def __init__(
+        self, in_channels: int, out_channels: int, hidden_channels: int | None = None, residual_init: str = "zero"
+    ):
         super().__init__()
+        if residual_init not in RESIDUAL_INITS:
+            raise ConfigError(f"residual_init must be one of {RESIDUAL_INITS}, got {residual_init!r}")
         hidden = min(in_channels, out_channels) if hidden_channels is None else hidden_channels
         self.in_channels, self.out_channels, self.hidden_channels = in_channels, out_channels, hidden
         self.fc0 = nn.Linear(in_channels, hidden)
         self.fc1 = nn.Linear(hidden, out_channels)
         nn.init.zeros_(self.fc1.weight)
-        nn.init.zeros_(self.fc1.bias)
+        if residual_init == "zero":
+            nn.init.zeros_(self.fc1.bias)
         self.shortcut = nn.Linear(in_channels, out_channels, bias=False) if in_channels != out_channels else None
 
     def forward(self, m: torch.Tensor) -> torch.Tensor:
@@ -335,6 +349,8 @@ class EdgeConv(nn.Module):
         Channels ``s`` of a vector shared by all vertices (a global pool), appended after ``x``; 0 for none.
     hidden_channels : int, optional
         Hidden width of the residual block (default ``min(2 (in + shared), out)``).
+    residual_init : {"zero", "original"}
+        See :class:`ResnetBlockFC`.
     """
 
     def __init__(
@@ -343,10 +359,11 @@ class EdgeConv(nn.Module):
         out_channels: int,
         shared_channels: int = 0,
         hidden_channels: int | None = None,
+        residual_init: str = "zero",
     ):
         super().__init__()
         self.in_channels, self.out_channels, self.shared_channels = in_channels, out_channels, shared_channels
-        self.block = ResnetBlockFC(2 * (in_channels + shared_channels), out_channels, hidden_channels)
+        self.block = ResnetBlockFC(2 * (in_channels + shared_channels), out_channels, hidden_channels, residual_init)
 
     def forward(
         self,
@@ -500,6 +517,8 @@ class ResnetEC(nn.Module):
     pool : {"global", "channel"}
         Global max over vertices (default, the paper's intent) or the original code's per-vertex max over
         channels broadcast to h columns (module docstring).
+    residual_init : {"zero", "original"}
+        Initialization of the residual blocks (:class:`ResnetBlockFC`).
     """
 
     def __init__(
@@ -509,6 +528,7 @@ class ResnetEC(nn.Module):
         hidden_channels: int = DEFAULT_HIDDEN,
         n_blocks: int = DEFAULT_N_BLOCKS,
         pool: str = "global",
+        residual_init: str = "zero",
     ):
         super().__init__()
         if pool not in POOL_MODES:
@@ -518,12 +538,12 @@ class ResnetEC(nn.Module):
         h = hidden_channels
         self.in_channels, self.out_channels, self.pool = in_channels, out_channels, pool
         self.fc_pos = nn.Linear(in_channels, 2 * h)
-        layers = [EdgeConv(2 * h, h)]
+        layers = [EdgeConv(2 * h, h, residual_init=residual_init)]
         for _ in range(n_blocks - 1):
             if pool == "global":
-                layers.append(EdgeConv(h + in_channels, h, shared_channels=h))
+                layers.append(EdgeConv(h + in_channels, h, shared_channels=h, residual_init=residual_init))
             else:
-                layers.append(EdgeConv(2 * h + in_channels, h))
+                layers.append(EdgeConv(2 * h + in_channels, h, residual_init=residual_init))
         self.blocks = nn.ModuleList(layers)
         self.fc_out = nn.Linear(h, out_channels)
 

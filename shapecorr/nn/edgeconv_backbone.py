@@ -37,6 +37,9 @@ class EdgeConvBackbone(NeuroMorphFeatureNet, Backbone):
         EdgeConv layers (NeuroMorph: 5).
     pool : {"global", "channel"}
         Pooling between layers ("global" our decision, "channel" the original code's).
+    residual_init : {"zero", "original"}
+        Initialization of the residual blocks' last layer: weight and bias zeroed (ours) or the weight only
+        (the original code's; :class:`~shapecorr.nn.edgeconv.ResnetBlockFC`).
     """
 
     required_operators: dict = {}
@@ -47,15 +50,16 @@ class EdgeConvBackbone(NeuroMorphFeatureNet, Backbone):
         hidden_channels: int = DEFAULT_HIDDEN,
         n_blocks: int = DEFAULT_N_BLOCKS,
         pool: str = DEFAULT_POOL,
+        residual_init: str = "zero",
     ):
         if int(feature_dim) < 1:
             raise ConfigError(f"model.backbone.feature_dim must be >= 1, got {feature_dim}")
         if pool not in POOL_MODES:
             raise ConfigError(f"model.backbone.pool must be one of {POOL_MODES}, got {pool!r}")
-        super().__init__(int(feature_dim), int(hidden_channels), int(n_blocks), str(pool))
+        super().__init__(int(feature_dim), int(hidden_channels), int(n_blocks), str(pool), str(residual_init))
         self.out_channels = int(feature_dim)
         self._options = {"feature_dim": int(feature_dim), "hidden_channels": int(hidden_channels),
-                         "n_blocks": int(n_blocks), "pool": str(pool)}
+                         "n_blocks": int(n_blocks), "pool": str(pool), "residual_init": str(residual_init)}
 
     def config(self) -> dict:
         """The ``_target_`` node that rebuilds this backbone (stored in checkpoints' hyperparameters)."""

@@ -66,8 +66,9 @@ class NeuroMorphFeatureNet(nn.Module):
     ----------
     out_channels : int
         Feature dimension (NeuroMorph: 128).
-    hidden_channels, n_blocks, pool
-        See :class:`shapecorr.nn.edgeconv.ResnetEC` (pool "global" by default; "channel" is the original's).
+    hidden_channels, n_blocks, pool, residual_init
+        See :class:`shapecorr.nn.edgeconv.ResnetEC` (pool "global" by default; "channel" is the original's;
+        residual_init "zero" by default, "original" the original's).
     """
 
     def __init__(
@@ -76,9 +77,10 @@ class NeuroMorphFeatureNet(nn.Module):
         hidden_channels: int = DEFAULT_HIDDEN,
         n_blocks: int = DEFAULT_N_BLOCKS,
         pool: str = "global",
+        residual_init: str = "zero",
     ):
         super().__init__()
-        self.net = ResnetEC(FEATURE_NET_IN, out_channels, hidden_channels, n_blocks, pool)
+        self.net = ResnetEC(FEATURE_NET_IN, out_channels, hidden_channels, n_blocks, pool, residual_init)
 
     def forward(
         self, verts: torch.Tensor, faces: torch.Tensor, edges: torch.Tensor, fast: bool = True
@@ -114,15 +116,19 @@ class NeuroMorphInterpolator(nn.Module):
 
     Parameters
     ----------
-    hidden_channels, n_blocks, pool
+    hidden_channels, n_blocks, pool, residual_init
         See :class:`shapecorr.nn.edgeconv.ResnetEC`.
     """
 
     def __init__(
-        self, hidden_channels: int = DEFAULT_HIDDEN, n_blocks: int = DEFAULT_N_BLOCKS, pool: str = "global"
+        self,
+        hidden_channels: int = DEFAULT_HIDDEN,
+        n_blocks: int = DEFAULT_N_BLOCKS,
+        pool: str = "global",
+        residual_init: str = "zero",
     ):
         super().__init__()
-        self.net = ResnetEC(INTERPOLATOR_IN, 3, hidden_channels, n_blocks, pool)
+        self.net = ResnetEC(INTERPOLATOR_IN, 3, hidden_channels, n_blocks, pool, residual_init)
 
     def forward(
         self,

@@ -294,3 +294,44 @@ def test_keyed_distributed_sampler_shards_like_lightnings_sampler():
         assert list(keyed) == [SampleKey(2, k, i) for k, i in enumerate(plain)]
     keyed.set_epoch(3)
     assert [key.epoch for key in keyed] == [3] * len(keyed)
+
+
+def _small_sample(name: str, offset=None) -> ShapeSample:
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    v, f = np.asarray(mesh.vertices) * [1.4, 1.0, 0.7], np.asarray(mesh.faces)
+    if offset is not None:  # a second, disjoint copy: two components
+        v, f = np.concatenate((v, v + offset)), np.concatenate((f, f + len(v)))
+    return _sample(v, f, name, np.arange(len(v)))
+
+
+def test_original_geodesics_are_clamped_submatrices_of_the_working_mesh(tmp_path, monkeypatch):
+    from shapecorr.geometry import geodesics as geo
+
+    x = _small_sample("x")
+    calls = []
+    real = geo.geodesic_distances
+    monkeypatch.setattr(geo, "geodesic_distances", lambda *a, **k: calls.append(k.get("method")) or real(*a, **k))
+    augmenter = PairAugmenter(dict(resolution=[60, 110], variants=2, rotate=False), ShapeCache(tmp_path),
+                              geodesics="original")
+    work_verts, work = augmenter.working_geodesics(x)
+    assert np.array_equal(work_verts, x.shape.verts.numpy())  # no max_vertices: the shape itself
+    exact = real(x.shape.verts.numpy(), x.shape.faces.numpy(), method="exact")
+    np.testing.assert_allclose(work, exact, rtol=1e-6, atol=1e-7)
+    out = augmenter(PairSample(x, x), np.random.default_rng(1), geodesics=True)
+    n = out.pair.x.shape.n_verts
+    assert n < x.shape.n_verts and out.dist_x.shape == (n, n)
+    # a sub-matrix of the working matrix at the nearest working vertices, not a matrix of the remesh
+    nearest = np.linalg.norm(out.pair.x.shape.verts.numpy()[:, None] - work_verts[None], axis=-1).argmin(1)
+    np.testing.assert_array_equal(out.dist_x.numpy(), work[np.ix_(nearest, nearest)])
+    assert torch.equal(out.dist_x, out.dist_x.T) and float(out.dist_x.diagonal().abs().max()) == 0.0
+    # close to the remesh's own exact geodesics: off by about one working-resolution edge length at most
+    own = real(out.pair.x.shape.verts.numpy(), out.pair.x.shape.faces.numpy(), method="exact")
+    assert np.abs(out.dist_x.numpy() - own).max() < 1.5 * _mean_edge(x.shape.verts.numpy(), x.shape.faces.numpy())
+    assert calls == ["exact"]  # one exact matrix per shape (cached), none per remesh
+    # unreachable pairs (two components) are set to 2, as the original's loader does
+    two = _small_sample("two", offset=[10.0, 0.0, 0.0])
+    _, dist = augmenter.working_geodesics(two)
+    m = two.shape.n_verts // 2
+    assert np.all(dist[:m, m:] == aug.ORIGINAL_GEODESIC_CLAMP_VALUE) and np.isfinite(dist).all()
+    with pytest.raises(ConfigError, match="geodesics"):
+        PairAugmenter({}, ShapeCache(tmp_path), geodesics="fast-marching")

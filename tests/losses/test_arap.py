@@ -83,16 +83,36 @@ def test_energy_matches_an_explicit_loop():
     assert float(arap_energy(verts, deformed, edges, mode="average")) == pytest.approx(avg, rel=1e-12)
 
 
-@pytest.mark.parametrize("mode", ["both-sides", "average"])
-def test_neuromorph_face_listed_edges_equal_weighted_unique_edges(mode):
+def _original_arap(verts_new, verts_old, faces):
+    """The original's ARAP term as described by its code: per face (f0,f1), (f0,f2), (f1,f2) listed once,
+    d = V_a - V_b, S_v = sum of d d0^T over the rows containing v, R_v its rotation, R_e = (R_a + R_b) / 2."""
+    rows = torch.cat((faces[:, [0, 1]], faces[:, [0, 2]], faces[:, [1, 2]]))
+    d = verts_new[rows[:, 0]] - verts_new[rows[:, 1]]
+    d0 = verts_old[rows[:, 0]] - verts_old[rows[:, 1]]
+    cov = torch.zeros(verts_new.shape[0], 3, 3, dtype=DTYPE)
+    outer = d[:, :, None] * d0[:, None, :]
+    cov.index_add_(0, rows[:, 0], outer).index_add_(0, rows[:, 1], outer)
+    u, _, vh = torch.linalg.svd(cov)
+    fix = torch.ones(verts_new.shape[0], 3, dtype=DTYPE)
+    fix[:, 2] = torch.sign(torch.linalg.det(u @ vh))
+    rot = u @ (fix[:, :, None] * vh)
+    r_e = 0.5 * (rot[rows[:, 0]] + rot[rows[:, 1]])
+    return float((d - (r_e @ d0[:, :, None]).squeeze(-1)).square().sum())
+
+
+def test_neuromorph_face_listed_edges_equal_face_count_weights():
     verts, faces, _ = _mesh()
     edges_w, counts = undirected_edges(faces, return_counts=True)
-    face_listed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    directed_dupes = torch.cat((face_listed, face_listed.flip(1)))  # as in the original: 4x per interior edge
     deformed = _nonrigid(verts, 5)
-    original = arap_energy(verts, deformed, directed_dupes, mode=mode)
-    ours = arap_energy(verts, deformed, edges_w, edge_weights=2.0 * counts.to(DTYPE), mode=mode)
-    assert float(ours) == pytest.approx(float(original), rel=1e-12)
+    expected = _original_arap(deformed, verts, faces)
+    ours = arap_energy(verts, deformed, edges_w, edge_weights=counts.to(DTYPE), mode="average")
+    assert float(ours) == pytest.approx(expected, rel=1e-12)
+    # the previous documentation's reading (both directions, 2 x counts) doubles it
+    doubled = arap_energy(verts, deformed, edges_w, edge_weights=2.0 * counts.to(DTYPE), mode="average")
+    assert float(doubled) == pytest.approx(2.0 * expected, rel=1e-12)
+    # both-sides at 0.5 x counts: the original's number of residuals, hence the same order (not a factor 2)
+    both = float(arap_energy(verts, deformed, edges_w, edge_weights=0.5 * counts.to(DTYPE)))
+    assert 0.8 * expected < both < 1.25 * expected
 
 
 @pytest.mark.parametrize("mode", ["both-sides", "average"])
