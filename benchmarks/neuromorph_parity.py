@@ -69,8 +69,8 @@ def run_pair(model, inp, out, dtype) -> dict:
     interp.zero_grad()
     edges_x, counts_x = undirected_edges(t["faces_x"], return_counts=True)
     edges_y = undirected_edges(t["faces_y"])
-    feat_x = feat_net(t["verts_x"], t["faces_x"], edges_x)
-    feat_y = feat_net(t["verts_y"], t["faces_y"], edges_y)
+    feat_x = feat_net.forward_arrays(t["verts_x"], t["faces_x"], edges_x)
+    feat_y = feat_net.forward_arrays(t["verts_y"], t["faces_y"], edges_y)
     pi, pi_inv = softmax_soft_maps(feat_x, feat_y, model.sigma, normalize=False)
     target = pi @ t["verts_y"]
     weights = model.arap_edge_weight_scale * counts_x.to(dtype)

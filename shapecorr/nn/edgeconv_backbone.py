@@ -65,6 +65,13 @@ class EdgeConvBackbone(NeuroMorphFeatureNet, Backbone):
         """The ``_target_`` node that rebuilds this backbone (stored in checkpoints' hyperparameters)."""
         return {"_target_": f"{type(self).__module__}.{type(self).__qualname__}", **self._options}
 
+    def forward_arrays(self, verts: torch.Tensor, faces: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+        """The network on raw arrays, ``verts (n, 3)``, ``faces (f, 3)``, undirected ``edges (E, 2)``: ``(n, C)``.
+
+        For callers that hold arrays rather than a sample (the parity checks against the original code).
+        """
+        return NeuroMorphFeatureNet.forward(self, verts, faces, edges)
+
     def forward(self, sample, rows: torch.Tensor | None = None, edges: torch.Tensor | None = None) -> torch.Tensor:
         """Features of one shape.
 
@@ -86,5 +93,5 @@ class EdgeConvBackbone(NeuroMorphFeatureNet, Backbone):
         """
         if edges is None:
             edges = undirected_edges(sample.faces, sample.shape.n_verts)
-        feat = super().forward(sample.verts, sample.faces, edges)
+        feat = self.forward_arrays(sample.verts, sample.faces, edges)
         return feat if rows is None else feat[rows]

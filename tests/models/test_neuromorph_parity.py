@@ -67,8 +67,8 @@ def _pair(model, pair: str):
         edges[s], counts[s] = undirected_edges(t[f"faces_{s}"], return_counts=True)
     model.feature_net.zero_grad()
     model.interpolator.zero_grad()
-    feat_x = model.feature_net(t["verts_x"], t["faces_x"], edges["x"])
-    feat_y = model.feature_net(t["verts_y"], t["faces_y"], edges["y"])
+    feat_x = model.feature_net.forward_arrays(t["verts_x"], t["faces_x"], edges["x"])
+    feat_y = model.feature_net.forward_arrays(t["verts_y"], t["faces_y"], edges["y"])
     pi, pi_inv = softmax_soft_maps(feat_x, feat_y, model.sigma, normalize=False)
     target = pi @ t["verts_y"]
     weights = model.arap_edge_weight_scale * counts["x"].float()
