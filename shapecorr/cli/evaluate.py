@@ -12,7 +12,8 @@ Options: ``configs/evaluate.yaml``. Steps of ``task=match`` (the default):
 1. Build the matcher (``hydra.utils.instantiate(cfg.model)``, or ``load_from_checkpoint(ckpt_path)`` of the
    model's class, or :class:`~shapecorr.matching.baselines.PrecomputedMaps` for ``maps_dir``) and the data
    module; the matcher's ``required_operators`` (e.g. a descriptor) are added to the data's operators.
-2. Fill the shape cache of the split, geodesic matrices included (rank 0, parallel, progress bar).
+2. Fill the shape cache of the split, with the geodesic rows from every target's ground-truth points (rank 0,
+   parallel, workers chosen from the estimated memory, progress bar).
 3. Evaluate this rank's shard of the pairs (:mod:`shapecorr.eval.protocol`): per-pair records, maps.
 4. Rank 0 merges the records of all pairs into ``metrics.json``, ``per_pair.csv``, ``pck.png`` and renders
    ``examples/<x>__<y>.png``.
@@ -298,6 +299,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     records = [r for r, _, _ in loaded]
     result = reports.aggregate(records, [e for _, e, _ in loaded], [s for _, _, s in loaded])
     result.update(memory)
+    result["n_excluded_points"] = int(sum(r.n_excluded for r in records))
     result["run"] = {
         **fingerprint,
         "device": str(device),

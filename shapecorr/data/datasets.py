@@ -33,7 +33,7 @@ from tqdm.auto import tqdm
 
 from shapecorr.data.cache import CacheKey, ShapeCache, default_cache_root
 from shapecorr.data.io import check_vts_lengths, load_shape, read_vts
-from shapecorr.data.operators import OperatorConfig, compute_operators, geodesics_cached
+from shapecorr.data.operators import OperatorConfig, compute_operators, geodesics_cached, geodesics_from_cached
 from shapecorr.data.shape import Normalization, Shape
 from shapecorr.errors import DatasetError
 
@@ -250,15 +250,22 @@ def sample_with_operators(
     )
 
 
+#: What ``ShapeDataset.prepare(geodesics=...)`` caches: rows from the ground-truth points (what the
+#: evaluation needs, ``R x n``) or the all-pairs matrix (``n x n``).
+GEODESIC_SOURCES = ("ground_truth", "all")
+
+
 def _prepare_one(args) -> str:
     """Worker: load one mesh and fill its cache entries (runs in a separate process)."""
-    path, normalization, operators, cache_root, geodesics = args
+    path, normalization, operators, cache_root, geodesics, sources = args
     cache = ShapeCache(cache_root)
     shape = load_mesh_cached(cache, Path(path), normalization)
     verts, faces = shape.verts.numpy(), shape.faces.numpy()
     compute_operators(cache, verts, faces, operators)
-    if geodesics:
+    if geodesics and sources is None:
         geodesics_cached(cache, verts, faces, method=geodesics)
+    elif geodesics:
+        geodesics_from_cached(cache, verts, faces, sources, method=geodesics)
     return shape.name
 
 
@@ -354,14 +361,56 @@ class ShapeDataset(Dataset):
         shape = self.load_shape(i)
         return geodesics_cached(self.cache, shape.verts.numpy(), shape.faces.numpy(), method=method)
 
-    def prepare(self, num_workers: int | None = None, geodesics: str | None = None, progress: bool = True) -> None:
+    def geodesic_sources(self, i: int) -> np.ndarray:
+        """Sorted unique vertices of shape ``i`` that the evaluation needs geodesic rows from: its ground-truth
+        points (``.vts`` and ``.sym.vts``), or every vertex when it has none (identity ground truth)."""
+        shape = self.load_shape(i)
+        refs = [self._read_corres(p, shape) for p in (self._corres_paths[shape.name], self._sym_paths[shape.name])]
+        refs = [r.numpy() for r in refs if r is not None]
+        if not refs:
+            return np.arange(shape.n_verts, dtype=np.int64)
+        return np.unique(np.concatenate(refs)).astype(np.int64)
+
+    def ground_truth_geodesics(self, i: int, method: str = "heat"):
+        """Geodesic rows from the ground-truth points of shape ``i`` (:meth:`geodesic_sources`), cached.
+
+        Returns
+        -------
+        :class:`~shapecorr.geometry.geodesics.SourceDistances`, rows ``(u, n)`` float32 (normalized units).
+        """
+        shape = self.load_shape(i)
+        return geodesics_from_cached(self.cache, shape.verts.numpy(), shape.faces.numpy(),
+                                     self.geodesic_sources(i), method=method)
+
+    def prepare(self, num_workers: int | None = None, geodesics: str | None = None, progress: bool = True,
+                geodesic_sources: str = "ground_truth") -> None:
         """Compute every missing cache entry (eigenbasis, descriptors, optionally geodesics).
 
-        Runs in ``num_workers`` processes (default: the CPU count, at most the number of shapes) with a
+        Runs in ``num_workers`` processes (default: the CPU count, at most the number of shapes, and at most
+        as many as fit in the available memory by :func:`shapecorr.data.memory.prepare_bytes`) with a
         progress bar; entries already cached are only read. Safe to interrupt: each entry is written atomically.
+        ``geodesic_sources``: ``"ground_truth"`` caches the rows from each shape's ground-truth points
+        (:meth:`ground_truth_geodesics`, what the evaluation reads), ``"all"`` the all-pairs matrix.
         """
-        jobs = [(p, self.normalization, self.operators, self.cache.root, geodesics) for p in self.paths]
-        workers = min(os.cpu_count() or 1, len(jobs)) if num_workers is None else num_workers
+        from shapecorr.data.memory import prepare_bytes, workers_for_memory
+
+        if geodesic_sources not in GEODESIC_SOURCES:
+            raise DatasetError(f"geodesic_sources must be one of {GEODESIC_SOURCES}, got {geodesic_sources!r}")
+        sources = [None] * len(self.paths)
+        if geodesics and geodesic_sources == "ground_truth":
+            sources = [self.geodesic_sources(i) for i in range(len(self.paths))]
+        jobs = [(p, self.normalization, self.operators, self.cache.root, geodesics, s)
+                for p, s in zip(self.paths, sources)]
+        estimates = []
+        for i in range(len(self.paths)):
+            n = self.load_shape(i).n_verts
+            n_src = (n if sources[i] is None else len(sources[i])) if geodesics else 0
+            estimates.append(prepare_bytes(n, self.operators.n_eig, n_src))
+        biggest = self.names[int(np.argmax(estimates))] if estimates else ""
+        workers = workers_for_memory(
+            estimates, num_workers, f"preparing shape {biggest!r} of {self.root}",
+            "free memory, lower the eigenpairs (data.operators.n_eig), give it fewer ground-truth points, or "
+            "evaluate it at a working resolution (e.g. remesh it first)")
         desc = f"preparing {self.root.name}" + (f" [{self.split}]" if self.split else "")
         if workers <= 1:
             for job in tqdm(jobs, desc=desc, unit="shape", disable=not progress):

@@ -21,7 +21,7 @@ from shapecorr.data.cache import ShapeCache
 from shapecorr.errors import ConfigError
 
 #: Bump an entry when the code computing that quantity changes its result: old cache entries become stale.
-OPERATOR_VERSIONS = {"eigenbasis": 1, "shot": 1, "wks": 1, "hks": 1, "geodesics": 1}
+OPERATOR_VERSIONS = {"eigenbasis": 1, "shot": 1, "wks": 1, "hks": 1, "geodesics": 1, "geodesics_from": 1}
 
 KNOWN_DESCRIPTORS = ("shot", "wks", "hks")
 
@@ -124,6 +124,40 @@ def geodesics_cached(cache: ShapeCache, verts, faces, method: str = "heat") -> n
     )["geodesics"]
 
 
+#: Stored in place of ``inf`` (no path: another connected component) in cached distance rows; the cache
+#: refuses non-finite values and a geodesic distance is never negative.
+UNREACHABLE = -1.0
+
+
+def geodesics_from_cached(cache: ShapeCache, verts, faces, sources, method: str = "heat"):
+    """Geodesic distances from ``sources (s,) int`` (e.g. a shape's ground-truth points), cached.
+
+    Returns
+    -------
+    :class:`~shapecorr.geometry.geodesics.SourceDistances`
+        Rows ``(u, n)`` float32 for the ``u`` unique sources (``inf`` across connected components).
+    """
+    import hashlib
+
+    from shapecorr.geometry.geodesics import SourceDistances, geodesic_distances_from
+
+    unique = np.unique(np.asarray(sources, dtype=np.int64))
+    params = {"method": method, "n_sources": int(unique.size),
+              "sources_sha256": hashlib.sha256(unique.tobytes()).hexdigest()}
+
+    def compute():
+        rows = geodesic_distances_from(verts, faces, unique, method=method)
+        rows[~np.isfinite(rows)] = UNREACHABLE
+        return {"sources": unique, "rows": rows}
+
+    hit = cache.get_or_compute("geodesics_from", verts, faces, params, OPERATOR_VERSIONS["geodesics_from"], compute)
+    rows = hit["rows"]
+    if (rows < 0).any():
+        rows = rows.copy()
+        rows[rows < 0] = np.inf
+    return SourceDistances(hit["sources"].astype(np.int64), rows)
+
+
 def compute_operators(cache: ShapeCache, verts, faces, cfg: OperatorConfig) -> dict[str, np.ndarray]:
     """All quantities requested by ``cfg`` for one shape (cached).
 
@@ -150,4 +184,5 @@ __all__ = [
     "descriptor_cached",
     "eigenbasis_cached",
     "geodesics_cached",
+    "geodesics_from_cached",
 ]
