@@ -78,3 +78,13 @@ def workers_for_memory(estimates: list[int], requested: int | None, what: str, o
             f"available; {option}"
         )
     return max(1, min(workers, int(budget // max(largest, 1))))
+
+
+def check_fits(n_bytes: int, what: str, option: str, available: int | None = None) -> None:
+    """Raise :class:`ConfigError` naming ``option`` when ``n_bytes`` exceed the headroom of the available memory."""
+    available = available_memory_bytes() if available is None else available
+    if available is not None and n_bytes > MEMORY_HEADROOM * available:
+        raise ConfigError(
+            f"{what} needs about {n_bytes / GIB:.1f} GiB but only {available / GIB:.1f} GiB of memory is "
+            f"available; {option}"
+        )

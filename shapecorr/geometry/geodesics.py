@@ -142,6 +142,13 @@ def geodesic_distances(
             "geodesic distances between them are infinite: pass allow_disconnected=True to get inf there"
         )
 
+    if all_pairs:
+        from shapecorr.data.memory import check_fits  # local: shapecorr.data imports this module
+
+        # the float64 matrix and the transposed copy of the symmetrization
+        check_fits(2 * 8 * n * n, f"the all-pairs geodesic matrix of a {n}-vertex mesh",
+                   "compute distances from the needed sources only (geodesic_distances_from), or work at a "
+                   "lower resolution (e.g. NeuroMorph: model.query_resolution)")
     D = np.full((src.size, n), np.inf)
     face_comp = labels[f[:, 0]]
     for comp in np.unique(labels[src]):

@@ -156,3 +156,13 @@ def test_prepare_estimate_is_linear_in_sources_not_quadratic():
     rows = prepare_bytes(n, 200, 5000)
     full = prepare_bytes(n, 200, n)
     assert rows < 5e9 < 8e10 < full
+
+
+def test_all_pairs_matrix_of_a_large_mesh_stops_before_allocating(monkeypatch):
+    import shapecorr.data.memory as memory
+
+    monkeypatch.setattr(memory, "available_memory_bytes", lambda: 1024**2)  # 1 MiB
+    v, f = sphere(3)  # 642 vertices: 6.6 MB for the all-pairs matrix
+    with pytest.raises(ConfigError, match="geodesic_distances_from.*query_resolution"):
+        geodesic_distances(v, f)
+    assert geodesic_distances_from(v, f, [0]).shape == (1, len(v))  # rows still work
