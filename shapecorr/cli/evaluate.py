@@ -97,7 +97,10 @@ def build_matcher(cfg: DictConfig, device: torch.device):
     if cfg.get("maps_dir"):
         if model_cfg is not None:
             raise ConfigError("give either model=<name> or maps_dir=DIR, not both")
-        return PrecomputedMaps(cfg.maps_dir, one_based=cfg.maps_one_based, extension=str(cfg.maps_extension))
+        one_based = cfg.get("maps_one_based")
+        if one_based is not None and not isinstance(one_based, bool):
+            raise ConfigError(f"maps_one_based must be true, false or null (not said), got {one_based!r}")
+        return PrecomputedMaps(cfg.maps_dir, one_based=one_based, extension=str(cfg.maps_extension))
     if model_cfg is None:
         raise ConfigError("nothing to evaluate: give model=<name> (e.g. model=descriptor_nn) or maps_dir=DIR")
     if "_target_" not in model_cfg:

@@ -466,8 +466,12 @@ def write_vts(path: str | PathLike, idx_zero_based: np.ndarray) -> None:
     _write_indices(path, _check_indices(idx_zero_based, path, "vts indices") + 1)
 
 
+#: The evaluate.py option that says whether map files are one-based (named in every map-index error).
+MAPS_ONE_BASED_OPTION = "maps_one_based"
+
+
 def read_map(
-    path: str | PathLike, one_based: bool = False, n_source: int | None = None, n_target: int | None = None
+    path: str | PathLike, one_based: bool | None = False, n_source: int | None = None, n_target: int | None = None
 ) -> np.ndarray:
     """Read a point-to-point map: one target vertex index per line, line i for source vertex i.
 
@@ -476,7 +480,10 @@ def read_map(
     path
         The map file (``.map``: zero-based; ``.txt``: zero-based unless one_based=True (SHREC), see :func:`read_correspondence`).
     one_based
-        The file's indices start at 1.
+        The file's indices start at 1 (True) or 0 (False). None: not said; then a file that never uses
+        index 0 is refused (it is most likely one-based, and reading it zero-based would shift every vertex
+        silently), and so is a file using index ``n_target`` (only valid one-based); the message names
+        ``maps_one_based``.
     n_source
         Expected number of lines (source vertices).
     n_target
@@ -490,7 +497,8 @@ def read_map(
     Raises
     ------
     CorrespondenceError
-        Missing/unreadable/empty file, a line without exactly one integer, wrong length, index out of range.
+        Missing/unreadable/empty file, a line without exactly one integer, wrong length, index out of range,
+        an ambiguous base with ``one_based=None``.
     """
     path = Path(path)
     values, numbers = [], []
@@ -504,7 +512,19 @@ def read_map(
         numbers.append(number)
     if not values:
         raise CorrespondenceError("file is empty (no indices)", path)
-    p2p = np.array(values, dtype=np.int64) - (1 if one_based else 0)
+    raw = np.array(values, dtype=np.int64)
+    if one_based is None:
+        smallest, largest = int(raw.min()), int(raw.max())
+        if smallest >= 1:
+            hint = f"; it uses index {largest} = n" if n_target is not None and largest == n_target else ""
+            raise CorrespondenceError(
+                f"the map never uses index 0 (indices {smallest}..{largest}{hint}): it looks one-based, and read "
+                f"as zero-based every vertex would be off by one. Say which: {MAPS_ONE_BASED_OPTION}=true "
+                f"(indices start at 1) or {MAPS_ONE_BASED_OPTION}=false (they start at 0)",
+                path,
+            )
+        one_based = False
+    p2p = raw - (1 if one_based else 0)
     if n_source is not None and len(p2p) != n_source:
         raise CorrespondenceError(f"map has {len(p2p)} entries but the source shape has {n_source} vertices", path)
     upper = n_target if n_target is not None else np.iinfo(np.int64).max
@@ -515,8 +535,9 @@ def read_map(
         if n_target is not None:
             valid = f"{base}..{n_target - 1 + base} for a target with n = {n_target} vertices"
         raise CorrespondenceError(
-            f"line {numbers[first]}: index {values[first]} is out of range ({'one' if one_based else 'zero'}-based; "
-            f"valid: {valid})",
+            f"line {numbers[first]}: index {values[first]} is out of range ({'one' if one_based else 'zero'}-based "
+            f"as {MAPS_ONE_BASED_OPTION}={'true' if one_based else 'false'} says; valid: {valid}); if the file is "
+            f"{'zero' if one_based else 'one'}-based, set {MAPS_ONE_BASED_OPTION}={'false' if one_based else 'true'}",
             path,
         )
     return p2p
