@@ -36,6 +36,10 @@ and writes ``OUT/pose_transfer/<A>__<B>/``: ``deformed.ply`` (the frame at t = 1
 identity in B's pose), the frames ``t_XX.ply`` + ``times.txt`` at ``interp_times`` (``write_interp``) and the
 map A -> B ``map.txt`` (zero-based, one line per vertex of A; ``write_maps``); it prints the paths.
 
+Ctrl-C stops the run with one line: how many pairs are done and the command that resumes it (the same
+options plus ``output_dir=OUT``, since the default output folder is new for every run); a resumed run prints
+``resuming: N of M pairs done``.
+
 Resumption: ``OUT/run.json`` records what is evaluated (matcher, checkpoint or maps folder, dataset, split,
 geodesics, and the interpolation times of interpolating matchers); a re-run with the same ``output_dir``
 skips the pairs already done and refuses to mix results of a different run. DDP: launch with
@@ -60,7 +64,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from shapecorr.cli.common import exit_on_user_error, user_config_error
+from shapecorr.cli.common import EXIT_INTERRUPTED, exit_on_user_error, user_config_error
 from shapecorr.data.cache import atomic_open
 from shapecorr.data.datasets import PairDataset, pair_name
 from shapecorr.errors import ConfigError
@@ -207,6 +211,14 @@ def render_examples(out_dir: Path, shapes, pairs, records, n_examples: int, view
     return written
 
 
+def interrupted_message(out_dir: Path, done: int, total: int, argv: list[str] | None = None) -> str:
+    """The one line printed when an evaluation is interrupted: how far it got and the command that resumes it."""
+    args = list(sys.argv if argv is None else argv)
+    args = [a for a in args[1:] if not a.startswith("output_dir=")]
+    command = " ".join(["python evaluate.py", *args, f"output_dir={out_dir}"])
+    return f"interrupted: {done} of {total} pairs done; resume with: {command}"
+
+
 def interp_times_option(cfg: DictConfig) -> tuple[float, ...] | None:
     """``cfg.interp_times`` checked (finite, strictly increasing), or None when it is null."""
     value = cfg.get("interp_times")
@@ -283,16 +295,24 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     _barrier()
 
     mine = protocol.shard_pairs(pairs, rank, world)
-    protocol.evaluate_pairs(
-        matcher,
-        shapes,
-        mine,
-        out_dir,
-        settings,
-        workers=int(cfg.workers),
-        start_method=str(cfg.start_method),
-        progress=bool(cfg.progress) and rank == 0,
-    )
+    names = [(shapes.names[i], shapes.names[j]) for i, j in pairs]
+    done = protocol.count_done(out_dir, names)
+    if rank == 0 and done and bool(cfg.resume):
+        print(f"resuming: {done} of {len(pairs)} pairs done in {out_dir}", file=sys.stderr)
+    try:
+        protocol.evaluate_pairs(
+            matcher,
+            shapes,
+            mine,
+            out_dir,
+            settings,
+            workers=int(cfg.workers),
+            start_method=str(cfg.start_method),
+            progress=bool(cfg.progress) and rank == 0,
+        )
+    except KeyboardInterrupt:
+        print(interrupted_message(out_dir, protocol.count_done(out_dir, names), len(pairs)), file=sys.stderr)
+        sys.exit(EXIT_INTERRUPTED)
     _barrier()
     memory = _peak_memory()
     if rank != 0:

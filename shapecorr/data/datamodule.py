@@ -18,6 +18,7 @@ from torch.utils.data import DataLoader, Sampler
 from shapecorr.data.datasets import PairDataset, PairSample, ShapeDataset
 from shapecorr.data.operators import OperatorConfig
 from shapecorr.data.shape import Normalization
+from shapecorr.data.validation import ValidationOptions
 from shapecorr.errors import ConfigError
 
 SPLITS = ("train", "val", "test")
@@ -127,6 +128,8 @@ class ShapePairDataModule(pl.LightningDataModule):
         (the embedded default dataset).
     shuffle_seed
         Seed of the training-pair shuffling generator (reproducible epochs).
+    validation
+        :class:`~shapecorr.data.validation.ValidationOptions` fields (``data.validation.*``).
     """
 
     def __init__(
@@ -141,6 +144,7 @@ class ShapePairDataModule(pl.LightningDataModule):
         prepare_workers: int | None = None,
         synthetic: Mapping | None = None,
         shuffle_seed: int = 0,
+        validation: Mapping | None = None,
     ):
         super().__init__()
         self.root = Path(os.path.expanduser(str(root)))
@@ -155,6 +159,7 @@ class ShapePairDataModule(pl.LightningDataModule):
                     raise ConfigError(f"unknown option(s) {sorted(unknown)} for split {split!r}; allowed: {sorted(allowed)}")
         self.normalization = _dataclass_from(Normalization, normalization)
         self.operators = _dataclass_from(OperatorConfig, operators)
+        self.validation = _dataclass_from(ValidationOptions, validation)
         self.cache_dir = cache_dir
         self.num_workers = num_workers
         self.prepare_workers = prepare_workers
@@ -197,6 +202,7 @@ class ShapePairDataModule(pl.LightningDataModule):
                 normalization=self.normalization,
                 operators=self.operators,
                 cache_dir=self.cache_dir,
+                validation=self.validation,
                 **self.split_selectors.get(split, {}),
             )
         return self._shapes[split]

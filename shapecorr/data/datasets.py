@@ -35,7 +35,8 @@ from shapecorr.data.cache import CacheKey, ShapeCache, default_cache_root
 from shapecorr.data.io import check_vts_lengths, load_shape, read_vts
 from shapecorr.data.operators import OperatorConfig, compute_operators, geodesics_cached, geodesics_from_cached
 from shapecorr.data.shape import Normalization, Shape
-from shapecorr.errors import DatasetError
+from shapecorr.data.validation import CLI_PREFIX, ValidationOptions
+from shapecorr.errors import DatasetError, InvalidMeshError
 
 MESH_DIRS = ("off", "shapes")
 MESH_EXTENSIONS = (".off", ".ply", ".obj")
@@ -139,14 +140,29 @@ def find_mesh_files(root: Path) -> dict[str, Path]:
     if mesh_dir is None:
         raise DatasetError(f"no mesh sub-folder: expected one of {'/, '.join(MESH_DIRS)}/", root)
     files: dict[str, Path] = {}
+    skipped: list[str] = []
     for path in sorted(mesh_dir.iterdir()):
         if path.suffix.lower() in MESH_EXTENSIONS and path.is_file():
             if path.stem in files:
                 raise DatasetError(f"two mesh files named {path.stem!r}: {files[path.stem].name} and {path.name}", mesh_dir)
             files[path.stem] = path
+        elif path.is_dir():
+            skipped.append(f"{path.name}/ (a directory; sub-folders are not searched)")
+        elif not path.name.startswith("."):
+            skipped.append(f"{path.name} (not {'/'.join(MESH_EXTENSIONS)})")
+    if skipped:
+        import warnings
+
+        warnings.warn(f"{mesh_dir}: skipped {len(skipped)} entr{'y' if len(skipped) == 1 else 'ies'}: "
+                      f"{', '.join(skipped[:5])}{', ...' if len(skipped) > 5 else ''}", DatasetWarning, stacklevel=2)
     if not files:
-        raise DatasetError(f"no mesh files ({', '.join(MESH_EXTENSIONS)}) found", mesh_dir)
+        extra = f"; skipped: {', '.join(skipped[:5])}" if skipped else ""
+        raise DatasetError(f"no mesh files ({', '.join(MESH_EXTENSIONS)}) found{extra}", mesh_dir)
     return files
+
+
+class DatasetWarning(UserWarning):
+    """Entries of a dataset folder were skipped (directories or files that are not meshes)."""
 
 
 def select_names(
@@ -191,7 +207,9 @@ def select_names(
     return chosen
 
 
-def load_mesh_cached(cache: ShapeCache, path: Path, normalization: Normalization) -> Shape:
+def load_mesh_cached(
+    cache: ShapeCache, path: Path, normalization: Normalization, validation: ValidationOptions | None = None
+) -> Shape:
     """:func:`~shapecorr.data.io.load_shape` through the cache.
 
     Parsing and validating a 5k-vertex mesh file costs ~0.1-0.25 s, ten times more than reading its cached
@@ -199,11 +217,15 @@ def load_mesh_cached(cache: ShapeCache, path: Path, normalization: Normalization
     modification time (any change of the file is a miss) and the normalization.
     """
     stat = path.stat()
+    validation = ValidationOptions() if validation is None else validation
     identity = {"path": str(path.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
+    params = {**identity, "normalization": asdict(normalization)}
+    if validation != ValidationOptions():  # the defaults keep the keys of existing cache entries
+        params["validation"] = asdict(validation)
     key = CacheKey(
         "mesh",
         hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest(),
-        {**identity, "normalization": asdict(normalization)},
+        params,
         MESH_CACHE_VERSION,
         keep_float64=True,
     )
@@ -217,7 +239,7 @@ def load_mesh_cached(cache: ShapeCache, path: Path, normalization: Normalization
             scale=float(hit["scale"][0]),
             offset=hit["offset"].astype(np.float64),
         )
-    shape = load_shape(path, normalization=normalization)
+    shape = load_shape(path, normalization=normalization, validation=validation)
     if cache.writable:
         cache.put(key, {"verts": shape.verts.numpy(), "faces": shape.faces.numpy(),
                         "scale": np.array([shape.scale]), "offset": np.asarray(shape.offset, np.float64)})
@@ -225,7 +247,7 @@ def load_mesh_cached(cache: ShapeCache, path: Path, normalization: Normalization
 
 
 def sample_with_operators(
-    shape: Shape, operators: OperatorConfig, cache: ShapeCache, corres=None, corres_sym=None
+    shape: Shape, operators: OperatorConfig, cache: ShapeCache, corres=None, corres_sym=None, fallback: bool = True
 ) -> ShapeSample:
     """``shape`` with its eigenbasis and descriptors (from ``cache``, computed on a miss) as a :class:`ShapeSample`.
 
@@ -236,8 +258,10 @@ def sample_with_operators(
     cache : ShapeCache
     corres, corres_sym : (n_ref,) int64 tensor, optional
         Ground-truth reference indices (and their symmetric flip), when known.
+    fallback : bool
+        Robust Laplacian where the cotangent one has infinite weights (:func:`operators_with_fallback`).
     """
-    ops = compute_operators(cache, shape.verts.numpy(), shape.faces.numpy(), operators)
+    ops = operators_with_fallback(cache, shape, operators, fallback)
     as_t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
     return ShapeSample(
         shape=shape,
@@ -250,6 +274,34 @@ def sample_with_operators(
     )
 
 
+def operators_with_fallback(cache: ShapeCache, shape: Shape, operators: OperatorConfig,
+                            fallback: bool = True) -> dict[str, np.ndarray]:
+    """:func:`compute_operators`, using the robust Laplacian for this shape where the cotangent one has
+    infinite weights (zero-area faces) when ``fallback`` (``data.validation.laplacian_fallback``), with a
+    warning naming the file; otherwise the error names the file and both options."""
+    from dataclasses import replace as dc_replace
+
+    from shapecorr.data.validation import MeshWarning
+
+    verts, faces = shape.verts.numpy(), shape.faces.numpy()
+    try:
+        return compute_operators(cache, verts, faces, operators)
+    except InvalidMeshError as err:
+        if operators.laplacian != "cotan" or "infinite weights" not in str(err):
+            raise
+        where = shape.path or shape.name
+        if not fallback:
+            raise InvalidMeshError(
+                f"{err.problem}; set {CLI_PREFIX}laplacian_fallback=true (robust Laplacian for such shapes) or "
+                "data.operators.laplacian=robust (for every shape)", where) from None
+        import warnings
+
+        warnings.warn(f"{where}: cotangent Laplacian has infinite weights (zero-area faces); using the robust "
+                      f"Laplacian for this shape ({CLI_PREFIX}laplacian_fallback=false refuses such shapes)",
+                      MeshWarning, stacklevel=2)
+        return compute_operators(cache, verts, faces, dc_replace(operators, laplacian="robust"))
+
+
 #: What ``ShapeDataset.prepare(geodesics=...)`` caches: rows from the ground-truth points (what the
 #: evaluation needs, ``R x n``) or the all-pairs matrix (``n x n``).
 GEODESIC_SOURCES = ("ground_truth", "all")
@@ -257,11 +309,11 @@ GEODESIC_SOURCES = ("ground_truth", "all")
 
 def _prepare_one(args) -> str:
     """Worker: load one mesh and fill its cache entries (runs in a separate process)."""
-    path, normalization, operators, cache_root, geodesics, sources = args
+    path, normalization, operators, cache_root, geodesics, sources, validation = args
     cache = ShapeCache(cache_root)
-    shape = load_mesh_cached(cache, Path(path), normalization)
+    shape = load_mesh_cached(cache, Path(path), normalization, validation)
     verts, faces = shape.verts.numpy(), shape.faces.numpy()
-    compute_operators(cache, verts, faces, operators)
+    operators_with_fallback(cache, shape, operators, validation.laplacian_fallback)
     if geodesics and sources is None:
         geodesics_cached(cache, verts, faces, method=geodesics)
     elif geodesics:
@@ -286,6 +338,8 @@ class ShapeDataset(Dataset):
         Root of the shape cache (default ``$SHAPECORR_CACHE`` or ``~/.cache/shapecorr``).
     require_corres
         Raise if a shape has no ``corres/<name>.vts``.
+    validation
+        Mesh-check relaxations (``data.validation.*``, :class:`~shapecorr.data.validation.ValidationOptions`).
     """
 
     def __init__(
@@ -299,8 +353,10 @@ class ShapeDataset(Dataset):
         operators: OperatorConfig = OperatorConfig(),
         cache_dir: str | os.PathLike | None = None,
         require_corres: bool = False,
+        validation: ValidationOptions | None = None,
     ):
         self.root = Path(root)
+        self.validation = ValidationOptions() if validation is None else validation
         self.split = split
         files = find_mesh_files(self.root)
         self.names = select_names(list(files), self.root, split, names, index_range, split_file)
@@ -341,14 +397,15 @@ class ShapeDataset(Dataset):
         """The normalized mesh of shape ``i`` (no operators); kept in memory once loaded."""
         shape = self._loaded.get(i)
         if shape is None:
-            shape = self._loaded[i] = load_mesh_cached(self.cache, self.paths[i], self.normalization)
+            shape = self._loaded[i] = load_mesh_cached(self.cache, self.paths[i], self.normalization, self.validation)
         return shape
 
     def __getitem__(self, i: int) -> ShapeSample:
         shape = self.load_shape(i)
         return sample_with_operators(shape, self.operators, self.cache,
                                      corres=self._read_corres(self._corres_paths[shape.name], shape),
-                                     corres_sym=self._read_corres(self._sym_paths[shape.name], shape))
+                                     corres_sym=self._read_corres(self._sym_paths[shape.name], shape),
+                                     fallback=self.validation.laplacian_fallback)
 
     @staticmethod
     def _read_corres(path: Path | None, shape: Shape) -> torch.Tensor | None:
@@ -399,7 +456,7 @@ class ShapeDataset(Dataset):
         sources = [None] * len(self.paths)
         if geodesics and geodesic_sources == "ground_truth":
             sources = [self.geodesic_sources(i) for i in range(len(self.paths))]
-        jobs = [(p, self.normalization, self.operators, self.cache.root, geodesics, s)
+        jobs = [(p, self.normalization, self.operators, self.cache.root, geodesics, s, self.validation)
                 for p, s in zip(self.paths, sources)]
         estimates = []
         for i in range(len(self.paths)):
@@ -480,7 +537,10 @@ class PairDataset(Dataset):
             keep = np.linspace(0, len(self.pairs) - 1, max_pairs).round().astype(int)
             self.pairs = [self.pairs[k] for k in keep]
         if not self.pairs:
-            raise DatasetError("the pair list is empty (a single shape without self-pairs?)", shapes.root)
+            raise DatasetError(
+                f"the pair list is empty: the split has {len(shapes)} shape(s) ({', '.join(shapes.names[:3])}) and "
+                "self-pairs are off; a pair needs two shapes (meshes directly inside off/ or shapes/; sub-folders "
+                "are not searched)", shapes.root)
 
     def _as_index(self, item: int | str) -> int:
         if isinstance(item, str):

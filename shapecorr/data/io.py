@@ -55,6 +55,7 @@ from shapecorr.data.shape import Normalization, Shape, make_shape
 from shapecorr.data.validation import (
     DEFAULT_DEGENERATE_TOL,
     DEFAULT_MAX_DEGENERATE_FRACTION,
+    ValidationOptions,
     check_mesh_arrays,
     validate_mesh,
 )
@@ -248,6 +249,7 @@ def read_mesh(
     degenerate_tol: float = DEFAULT_DEGENERATE_TOL,
     max_degenerate_fraction: float = DEFAULT_MAX_DEGENERATE_FRACTION,
     allow_unreferenced: bool = False,
+    allow_disconnected: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Read a triangle mesh from an OFF, PLY or OBJ file, keeping the file's vertex order.
 
@@ -258,8 +260,8 @@ def read_mesh(
     validate
         Run :func:`~shapecorr.data.validation.validate_mesh` (raising on invalid content, warning on
         non-manifold or multi-component meshes). ``False`` returns the arrays as parsed.
-    degenerate_tol, max_degenerate_fraction, allow_unreferenced
-        Passed to :func:`~shapecorr.data.validation.validate_mesh`.
+    degenerate_tol, max_degenerate_fraction, allow_unreferenced, allow_disconnected
+        Passed to :func:`~shapecorr.data.validation.validate_mesh` (``data.validation.*`` options).
 
     Returns
     -------
@@ -302,12 +304,16 @@ def read_mesh(
             degenerate_tol=degenerate_tol,
             max_degenerate_fraction=max_degenerate_fraction,
             allow_unreferenced=allow_unreferenced,
+            allow_disconnected=allow_disconnected,
         )
     return verts, faces
 
 
 def load_shape(
-    path: str | PathLike, normalization: Normalization | None = Normalization(), validate: bool = True
+    path: str | PathLike,
+    normalization: Normalization | None = Normalization(),
+    validate: bool = True,
+    validation: ValidationOptions | None = None,
 ) -> Shape:
     """Read a mesh file into a normalized :class:`~shapecorr.data.shape.Shape` named after the file stem.
 
@@ -319,9 +325,19 @@ def load_shape(
         How to center and scale (``None``: keep the raw coordinates); the transform is stored on the shape.
     validate
         Validate the mesh (see :func:`read_mesh`).
+    validation
+        The ``data.validation.*`` relaxations (default :class:`~shapecorr.data.validation.ValidationOptions`).
     """
     path = Path(path)
-    verts, faces = read_mesh(path, validate=validate)
+    opts = ValidationOptions() if validation is None else validation
+    verts, faces = read_mesh(
+        path,
+        validate=validate,
+        degenerate_tol=opts.degenerate_tol,
+        max_degenerate_fraction=opts.max_degenerate_fraction,
+        allow_unreferenced=opts.allow_unreferenced,
+        allow_disconnected=opts.allow_disconnected,
+    )
     try:
         return make_shape(verts, faces, name=path.stem, path=path, normalization=normalization)
     except InvalidMeshError as err:

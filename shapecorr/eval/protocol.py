@@ -203,6 +203,14 @@ def score_map(p2p, x, y, dist_y, clamp: float = metrics.CONFORMAL_DISTORTION_CLA
     if shape_of not in ((n_y,), (n_y, n_y)):
         raise CorrespondenceError(f"geodesic distances of {y.name} have shape {shape_of}, expected ({n_y}, {n_y})")
     as_np = lambda t: None if t is None else t.detach().cpu().numpy()  # noqa: E731
+    if (x.corres is None) != (y.corres is None):
+        missing, other = (x, y) if x.corres is None else (y, x)
+        where = missing.shape.path.parent.parent if missing.shape.path is not None else None
+        raise CorrespondenceError(
+            f"ground truth corres/{missing.name}.vts is missing for {missing.name} but present for {other.name}: "
+            f"add it, or evaluate only shapes that all have (or all lack) ground truth",
+            where,
+        )
     faces_x, faces_y = as_np(x.shape.faces), as_np(y.shape.faces)
     verts_x, verts_y = as_np(x.shape.verts), as_np(y.shape.verts)
     ref_x, ref_y = metrics.ground_truth_indices(as_np(x.corres), as_np(y.corres), n_x, n_y, faces_x, faces_y)
@@ -618,6 +626,11 @@ _WORKER: PairEvaluator | None = None
 
 def _init_worker(shapes, matcher, out_dir, settings, threads: int) -> None:
     global _WORKER
+    import signal
+
+    # Ctrl-C reaches the whole process group: the parent stops the run (one line, see shapecorr.cli.evaluate);
+    # the workers finish their current pair instead of each printing a traceback.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(threads)
     _WORKER = PairEvaluator(shapes, matcher, out_dir, settings)
 
@@ -687,14 +700,18 @@ def evaluate_pairs(
                 initargs=(shapes, matcher, str(out_dir), settings, threads),
             ) as pool:
                 pending = {pool.submit(_run_in_worker, i, j) for i, j in todo}
-                while pending:
-                    done, pending = wait(pending, return_when=FIRST_EXCEPTION)
-                    for future in done:
-                        if future.exception() is not None:
-                            for other in pending:
-                                other.cancel()
-                            raise future.exception()
-                        bar.update()
+                try:
+                    while pending:
+                        done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+                        for future in done:
+                            if future.exception() is not None:
+                                for other in pending:
+                                    other.cancel()
+                                raise future.exception()
+                            bar.update()
+                except KeyboardInterrupt:
+                    pool.shutdown(wait=False, cancel_futures=True)  # running pairs finish, queued ones are dropped
+                    raise
     finally:
         bar.close()
     return [load_record(out_dir, a, b)[0] for a, b in names]
@@ -703,6 +720,11 @@ def evaluate_pairs(
 # --------------------------------------------------------------------------------------------------------
 # DDP sharding
 # --------------------------------------------------------------------------------------------------------
+def count_done(out_dir: str | os.PathLike, names: Sequence[tuple[str, str]]) -> int:
+    """How many of the pairs ``names`` (source, target) already have a record in ``out_dir``."""
+    return sum(is_done(out_dir, a, b) for a, b in names)
+
+
 def distributed_context() -> tuple[int, int]:
     """``(rank, world_size)``: from torch.distributed when initialized, else from the launcher's environment.
 
