@@ -190,6 +190,11 @@ def _peak_memory() -> dict[str, float]:
     return mem
 
 
+def printable(name: str) -> str:
+    """A shape name for text output: names from non-UTF-8 file names (surrogate escapes) with U+FFFD."""
+    return name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+
+
 def render_examples(out_dir: Path, shapes, pairs, records, n_examples: int, view) -> list[Path]:
     """Texture-transfer renders of ``n_examples`` evenly spaced pairs (existing images are kept)."""
     if n_examples <= 0 or not pairs:
@@ -204,9 +209,10 @@ def render_examples(out_dir: Path, shapes, pairs, records, n_examples: int, view
             continue
         x, y = shapes.load_shape(i), shapes.load_shape(j)
         p2p = np.load(npy, allow_pickle=False)
-        title = f"{record.source} -> {record.target}: mean error {record.mean_error:.4f}"
+        src, tgt = printable(record.source), printable(record.target)
+        title = f"{src} -> {tgt}: mean error {record.mean_error:.4f}"
         render_correspondence(path, x.verts, x.faces, y.verts, y.faces, p2p, title=title, view=view,
-                              names=(f"{record.source} (colors via map)", record.target))
+                              names=(f"{src} (colors via map)", tgt))
         written.append(path)
     return written
 

@@ -190,7 +190,7 @@ def select_names(
                     f"no split file for split {split!r} (expected splits/{split}.txt, or give an index range in "
                     "the data config)", root)
             raise DatasetError("split file does not exist", path)
-        chosen = [line.strip() for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
+        chosen = [line.strip() for line in path.read_text(errors="surrogateescape").splitlines() if line.strip() and not line.startswith("#")]
         source = str(path)
     elif index_range is not None:
         start, stop = int(index_range[0]), int(index_range[1])
@@ -487,7 +487,7 @@ def read_pair_file(path: str | os.PathLike) -> list[tuple[str, str]]:
     if not path.is_file():
         raise DatasetError("pair list file does not exist", path)
     pairs = []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    for lineno, line in enumerate(path.read_text(errors="surrogateescape").splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
