@@ -297,7 +297,9 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     if rank == 0:
         _check_run_file(out_dir, fingerprint, bool(cfg.resume))
         # Fill the cache of every shape of the split once, in parallel, before any pair is evaluated.
-        shapes.prepare(num_workers=None, geodesics=settings.geodesics, progress=bool(cfg.progress))
+        # data.prepare_workers (null: all CPUs), lowered to what the estimated memory allows
+        shapes.prepare(num_workers=getattr(dm, "prepare_workers", None), geodesics=settings.geodesics,
+                       progress=bool(cfg.progress))
     _barrier()
 
     mine = protocol.shard_pairs(pairs, rank, world)
