@@ -124,23 +124,11 @@ def geodesic_distances(
     NumericalError
         The solver returned NaN/Inf inside a component.
     """
-    v, f = mesh_arrays(verts, faces)
-    n = v.shape[0]
-    if method not in GEODESIC_METHODS:
-        raise ConfigError(f"geodesic method must be one of {GEODESIC_METHODS}, got {method!r}")
     if n_jobs < 1:
         raise ConfigError(f"n_jobs must be >= 1, got {n_jobs}")
     all_pairs = sources is None
-    src = np.arange(n) if all_pairs else np.atleast_1d(_as_numpy(sources)).astype(np.int64).ravel()
-    if src.size and (src.min() < 0 or src.max() >= n):
-        raise ConfigError(f"source indices must be in [0, {n}), got min {src.min()}, max {src.max()}")
-    n_comp, labels = vertex_components(n, f)
-    if n_comp > 1 and not allow_disconnected:
-        sizes = np.bincount(labels)
-        raise InvalidMeshError(
-            f"mesh has {n_comp} connected components (sizes {sorted(sizes.tolist(), reverse=True)[:5]}...); "
-            "geodesic distances between them are infinite: pass allow_disconnected=True to get inf there"
-        )
+    v, f, src, n_comp, labels = _checked_inputs(verts, faces, sources, method, allow_disconnected)
+    n = v.shape[0]
 
     if all_pairs:
         from shapecorr.data.memory import check_fits  # local: shapecorr.data imports this module
@@ -150,22 +138,12 @@ def geodesic_distances(
                    "compute distances from the needed sources only (geodesic_distances_from), or work at a "
                    "lower resolution (e.g. NeuroMorph: model.query_resolution)")
     D = np.full((src.size, n), np.inf)
-    face_comp = labels[f[:, 0]]
-    for comp in np.unique(labels[src]):
-        rows = np.flatnonzero(labels[src] == comp)
-        members = np.flatnonzero(labels == comp)
-        comp_faces = f[face_comp == comp]
-        if comp_faces.shape[0] == 0:  # an isolated vertex
+    for rows, members, sub_v, sub_f, local in _components_of_sources(v, f, src, n_comp, labels):
+        if sub_f is None:  # an isolated vertex
             D[rows, src[rows]] = 0.0
             continue
-        if n_comp == 1:
-            sub_v, sub_f, local = v, f, src[rows]
-        else:
-            remap = np.full(n, -1, dtype=np.int64)
-            remap[members] = np.arange(members.size)
-            sub_v, sub_f, local = v[members], remap[comp_faces], remap[src[rows]]
         block = _distances_parallel(sub_v, sub_f, local, method, t_coef, robust, n_jobs)
-        if n_comp == 1:
+        if members is None:
             D[rows] = block
         else:
             D[np.ix_(rows, members)] = block
@@ -177,6 +155,48 @@ def geodesic_distances(
     if np.isnan(D).any():
         raise NumericalError(f"{method} geodesic distances contain NaN")
     return D
+
+
+def _components_of_sources(v, f, src, n_comp: int, labels):
+    """Per connected component holding a source: ``(rows, members, sub_v, sub_f, local)``.
+
+    ``rows``: positions in ``src`` of its sources; ``members``: its vertices (None for a connected mesh, whose
+    single component is the whole mesh); ``sub_v, sub_f``: the component as its own mesh (``sub_f`` None for
+    an isolated vertex); ``local``: its sources in the component's numbering.
+    """
+    face_comp = labels[f[:, 0]]
+    for comp in np.unique(labels[src]):
+        rows = np.flatnonzero(labels[src] == comp)
+        comp_faces = f[face_comp == comp]
+        if comp_faces.shape[0] == 0:
+            yield rows, None, None, None, None
+        elif n_comp == 1:
+            yield rows, None, v, f, src[rows]
+        else:
+            members = np.flatnonzero(labels == comp)
+            remap = np.full(v.shape[0], -1, dtype=np.int64)
+            remap[members] = np.arange(members.size)
+            yield rows, members, v[members], remap[comp_faces], remap[src[rows]]
+
+
+def _checked_inputs(verts, faces, sources, method: str, allow_disconnected: bool):
+    """Checked ``(v, f, sources (s,) int64, n_components, labels)``; ``sources=None`` means every vertex."""
+    v, f = mesh_arrays(verts, faces)
+    n = v.shape[0]
+    if method not in GEODESIC_METHODS:
+        raise ConfigError(f"geodesic method must be one of {GEODESIC_METHODS}, got {method!r}")
+    src = np.arange(n) if sources is None else np.atleast_1d(_as_numpy(sources)).astype(np.int64).ravel()
+    if src.size and (src.min() < 0 or src.max() >= n):
+        raise ConfigError(f"source indices must be in [0, {n}), got min {src.min()}, max {src.max()}")
+    n_comp, labels = vertex_components(n, f)
+    if n_comp > 1 and not allow_disconnected:
+        sizes = np.bincount(labels)
+        raise InvalidMeshError(
+            f"mesh has {n_comp} connected components (sizes {sorted(sizes.tolist(), reverse=True)[:5]}...); "
+            "geodesic distances between them are infinite: pass allow_disconnected=True to get inf there "
+            "(evaluation: data.validation.allow_disconnected=true)"
+        )
+    return v, f, src, n_comp, labels
 
 
 def _distances_parallel(v, f, sources, method, t_coef, robust, n_jobs: int) -> np.ndarray:
@@ -194,20 +214,8 @@ def _distances_parallel(v, f, sources, method, t_coef, robust, n_jobs: int) -> n
 def _component_distances(v, f, sources, method: str, t_coef: float, robust: bool) -> np.ndarray:
     """Distances (s, n_c) inside one connected component."""
     out = np.empty((sources.size, v.shape[0]))
-    if method == "heat":
-        solver = pp3d.MeshHeatMethodDistanceSolver(v, f, t_coef=t_coef, use_robust=robust)
-        for a, s in enumerate(sources):
-            out[a] = solver.compute_distance(int(s))
-    else:
-        targets = np.arange(v.shape[0], dtype=np.int64)
-        no_faces = np.zeros(0, dtype=np.int64)
-        for a, s in enumerate(sources):
-            out[a] = igl.exact_geodesic(v, f, np.array([s], dtype=np.int64), no_faces, targets, no_faces)
-    if not np.isfinite(out).all():
-        raise NumericalError(f"{method} geodesic solver returned NaN/Inf inside a connected component")
-    # The heat method can give tiny negative values next to the source; distances are >= 0.
-    np.maximum(out, 0.0, out=out)
-    out[np.arange(sources.size), sources] = 0.0
+    for a, row in enumerate(_rows_in_component(v, f, sources, method, t_coef, robust)):
+        out[a] = row
     return out
 
 
@@ -260,35 +268,13 @@ def geodesic_distances_from(
     NumericalError
         The solver returned NaN/Inf inside a component.
     """
-    v, f = mesh_arrays(verts, faces)
+    v, f, src, n_comp, labels = _checked_inputs(verts, faces, sources, method, allow_disconnected)
     n = v.shape[0]
-    if method not in GEODESIC_METHODS:
-        raise ConfigError(f"geodesic method must be one of {GEODESIC_METHODS}, got {method!r}")
-    src = np.atleast_1d(_as_numpy(sources)).astype(np.int64).ravel()
-    if src.size and (src.min() < 0 or src.max() >= n):
-        raise ConfigError(f"source indices must be in [0, {n}), got min {src.min()}, max {src.max()}")
-    n_comp, labels = vertex_components(n, f)
-    if n_comp > 1 and not allow_disconnected:
-        sizes = np.bincount(labels)
-        raise InvalidMeshError(
-            f"mesh has {n_comp} connected components (sizes {sorted(sizes.tolist(), reverse=True)[:5]}...); "
-            "geodesic distances between them are infinite"
-        )
     out = np.full((src.size, n), np.inf, dtype=np.float32)
-    face_comp = labels[f[:, 0]]
-    for comp in np.unique(labels[src]):
-        rows = np.flatnonzero(labels[src] == comp)
-        comp_faces = f[face_comp == comp]
-        if comp_faces.shape[0] == 0:  # an isolated vertex
+    for rows, members, sub_v, sub_f, local in _components_of_sources(v, f, src, n_comp, labels):
+        if sub_f is None:  # an isolated vertex
             out[rows, src[rows]] = 0.0
             continue
-        if n_comp == 1:
-            members, sub_v, sub_f, local = None, v, f, src[rows]
-        else:
-            members = np.flatnonzero(labels == comp)
-            remap = np.full(n, -1, dtype=np.int64)
-            remap[members] = np.arange(members.size)
-            sub_v, sub_f, local = v[members], remap[comp_faces], remap[src[rows]]
         for row, d in zip(rows, _rows_in_component(sub_v, sub_f, local, method, t_coef, robust)):
             if members is None:
                 out[row] = d

@@ -144,6 +144,17 @@ def test_islands_evaluate_by_default_and_are_counted(tmp_path):
     assert len(island) == 1 and str(paths[1]) in island[0] and "n_excluded_points" in island[0]  # once per file
 
 
+def _write_maps(tmp_path, p2p) -> Path:
+    """The same map file for every ordered pair of shapes a, b, c."""
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    for a in "abc":
+        for b in "abc":
+            if a != b:
+                np.savetxt(maps / f"{a}__{b}.txt", p2p, fmt="%d")
+    return maps
+
+
 @pytest.mark.parametrize("flag, expect_exit, needles", [
     (None, True, ["never uses index 0", "maps_one_based=true", "maps_one_based=false"]),
     ("true", False, []),
@@ -151,13 +162,8 @@ def test_islands_evaluate_by_default_and_are_counted(tmp_path):
 ], ids=["not-said-refused", "one-based", "zero-based-said"])
 def test_one_based_map_without_the_flag(tmp_path, capsys, flag, expect_exit, needles):
     make_folder(tmp_path / "data")
-    maps = tmp_path / "maps"
-    maps.mkdir()
     n = len(_sphere()[0])
-    for a in "abc":
-        for b in "abc":
-            if a != b:  # a one-based identity map that never reaches n: indices 1..n-1
-                np.savetxt(maps / f"{a}__{b}.txt", np.minimum(np.arange(n) + 1, n - 1), fmt="%d")
+    maps = _write_maps(tmp_path, np.minimum(np.arange(n) + 1, n - 1))  # one-based identity never reaching n
     over = [f"maps_dir={maps}", "~model"] + ([] if flag is None else [f"maps_one_based={flag}"])
     result, _, _ = _run(tmp_path, *over, expect_exit=expect_exit)
     if expect_exit:
@@ -172,13 +178,8 @@ def test_one_based_map_without_the_flag(tmp_path, capsys, flag, expect_exit, nee
 
 def test_map_index_out_of_range_names_the_flag(tmp_path, capsys):
     make_folder(tmp_path / "data")
-    maps = tmp_path / "maps"
-    maps.mkdir()
     n = len(_sphere()[0])
-    for a in "abc":
-        for b in "abc":
-            if a != b:
-                np.savetxt(maps / f"{a}__{b}.txt", np.arange(n) + 1, fmt="%d")  # uses n: only valid one-based
+    maps = _write_maps(tmp_path, np.arange(n) + 1)  # uses n: only valid one-based
     _run(tmp_path, f"maps_dir={maps}", "~model", "maps_one_based=false", expect_exit=True)
     err = capsys.readouterr().err
     assert "maps_one_based=true" in err and str(maps) in err
