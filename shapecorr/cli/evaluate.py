@@ -13,7 +13,8 @@ Options: ``configs/evaluate.yaml``. Steps of ``task=match`` (the default):
    model's class, or :class:`~shapecorr.matching.baselines.PrecomputedMaps` for ``maps_dir``) and the data
    module; the matcher's ``required_operators`` (an operator request, e.g. ``{"wks": {}}``;
    :mod:`shapecorr.data.operators`) are added to the data's operators.
-2. Fill the shape cache of the split, geodesic matrices included (rank 0, parallel, progress bar).
+2. Fill the shape cache of the split, with the geodesic rows from every target's ground-truth points (rank 0,
+   parallel, workers chosen from the estimated memory, progress bar).
 3. Evaluate this rank's shard of the pairs (:mod:`shapecorr.eval.protocol`): per-pair records, maps.
 4. Rank 0 merges the records of all pairs into ``metrics.json``, ``per_pair.csv``, ``pck.png`` and renders
    ``examples/<x>__<y>.png``.
@@ -35,6 +36,10 @@ summary the first two.
 and writes ``OUT/pose_transfer/<A>__<B>/``: ``deformed.ply`` (the frame at t = 1 in A's input units: A's
 identity in B's pose), the frames ``t_XX.ply`` + ``times.txt`` at ``interp_times`` (``write_interp``) and the
 map A -> B ``map.txt`` (zero-based, one line per vertex of A; ``write_maps``); it prints the paths.
+
+Ctrl-C stops the run with one line: how many pairs are done and the command that resumes it (the same
+options plus ``output_dir=OUT``, since the default output folder is new for every run); a resumed run prints
+``resuming: N of M pairs done``.
 
 Resumption: ``OUT/run.json`` records what is evaluated (matcher, checkpoint or maps folder, dataset, split,
 geodesics, and the interpolation times of interpolating matchers); a re-run with the same ``output_dir``
@@ -60,7 +65,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from shapecorr.cli.common import exit_on_user_error, user_config_error
+from shapecorr.cli.common import EXIT_INTERRUPTED, exit_on_user_error, user_config_error
 from shapecorr.data.cache import atomic_open
 from shapecorr.data.datasets import PairDataset, pair_name
 from shapecorr.data.operators import required_request
@@ -99,7 +104,10 @@ def build_matcher(cfg: DictConfig, device: torch.device):
     if cfg.get("maps_dir"):
         if model_cfg is not None:
             raise ConfigError("give either model=<name> or maps_dir=DIR, not both")
-        return PrecomputedMaps(cfg.maps_dir, one_based=cfg.maps_one_based, extension=str(cfg.maps_extension))
+        one_based = cfg.get("maps_one_based")
+        if one_based is not None and not isinstance(one_based, bool):
+            raise ConfigError(f"maps_one_based must be true, false or null (not said), got {one_based!r}")
+        return PrecomputedMaps(cfg.maps_dir, one_based=one_based, extension=str(cfg.maps_extension))
     if model_cfg is None:
         raise ConfigError("nothing to evaluate: give model=<name> (e.g. model=descriptor_nn) or maps_dir=DIR")
     if "_target_" not in model_cfg:
@@ -185,6 +193,11 @@ def _peak_memory() -> dict[str, float]:
     return mem
 
 
+def printable(name: str) -> str:
+    """A shape name for text output: names from non-UTF-8 file names (surrogate escapes) with U+FFFD."""
+    return name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+
+
 def render_examples(out_dir: Path, shapes, pairs, records, n_examples: int, view) -> list[Path]:
     """Texture-transfer renders of ``n_examples`` evenly spaced pairs (existing images are kept)."""
     if n_examples <= 0 or not pairs:
@@ -199,11 +212,20 @@ def render_examples(out_dir: Path, shapes, pairs, records, n_examples: int, view
             continue
         x, y = shapes.load_shape(i), shapes.load_shape(j)
         p2p = np.load(npy, allow_pickle=False)
-        title = f"{record.source} -> {record.target}: mean error {record.mean_error:.4f}"
+        src, tgt = printable(record.source), printable(record.target)
+        title = f"{src} -> {tgt}: mean error {record.mean_error:.4f}"
         render_correspondence(path, x.verts, x.faces, y.verts, y.faces, p2p, title=title, view=view,
-                              names=(f"{record.source} (colors via map)", record.target))
+                              names=(f"{src} (colors via map)", tgt))
         written.append(path)
     return written
+
+
+def interrupted_message(out_dir: Path, done: int, total: int, argv: list[str] | None = None) -> str:
+    """The one line printed when an evaluation is interrupted: how far it got and the command that resumes it."""
+    args = list(sys.argv if argv is None else argv)
+    args = [a for a in args[1:] if not a.startswith("output_dir=")]
+    command = " ".join(["python evaluate.py", *args, f"output_dir={out_dir}"])
+    return f"interrupted: {done} of {total} pairs done; resume with: {command}"
 
 
 def interp_times_option(cfg: DictConfig) -> tuple[float, ...] | None:
@@ -276,20 +298,30 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     if rank == 0:
         _check_run_file(out_dir, fingerprint, bool(cfg.resume))
         # Fill the cache of every shape of the split once, in parallel, before any pair is evaluated.
-        shapes.prepare(num_workers=None, geodesics=settings.geodesics, progress=bool(cfg.progress))
+        # data.prepare_workers (null: all CPUs), lowered to what the estimated memory allows
+        shapes.prepare(num_workers=getattr(dm, "prepare_workers", None), geodesics=settings.geodesics,
+                       progress=bool(cfg.progress))
     _barrier()
 
     mine = protocol.shard_pairs(pairs, rank, world)
-    protocol.evaluate_pairs(
-        matcher,
-        shapes,
-        mine,
-        out_dir,
-        settings,
-        workers=int(cfg.workers),
-        start_method=str(cfg.start_method),
-        progress=bool(cfg.progress) and rank == 0,
-    )
+    names = [(shapes.names[i], shapes.names[j]) for i, j in pairs]
+    done = protocol.count_done(out_dir, names)
+    if rank == 0 and done and bool(cfg.resume):
+        print(f"resuming: {done} of {len(pairs)} pairs done in {out_dir}", file=sys.stderr)
+    try:
+        protocol.evaluate_pairs(
+            matcher,
+            shapes,
+            mine,
+            out_dir,
+            settings,
+            workers=int(cfg.workers),
+            start_method=str(cfg.start_method),
+            progress=bool(cfg.progress) and rank == 0,
+        )
+    except KeyboardInterrupt:
+        print(interrupted_message(out_dir, protocol.count_done(out_dir, names), len(pairs)), file=sys.stderr)
+        sys.exit(EXIT_INTERRUPTED)
     _barrier()
     memory = _peak_memory()
     if rank != 0:
@@ -299,6 +331,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     records = [r for r, _, _ in loaded]
     result = reports.aggregate(records, [e for _, e, _ in loaded], [s for _, _, s in loaded])
     result.update(memory)
+    result["n_excluded_points"] = int(sum(r.n_excluded for r in records))
     result["run"] = {
         **fingerprint,
         "device": str(device),

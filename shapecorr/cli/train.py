@@ -49,6 +49,21 @@ def _instantiate(node: DictConfig, what: str, **kwargs) -> Any:
         raise ConfigError(f"cannot build the {what}: {err}") from None
 
 
+class FinalLastCheckpoint(ModelCheckpoint):
+    """ModelCheckpoint whose ``last.ckpt`` is always the final step.
+
+    Lightning (2.6) writes ``last.ckpt`` with each periodic checkpoint and, at the end of fitting, only if no
+    ``last.ckpt`` was written before: with ``every_n_train_steps`` and a final step that is not a multiple of
+    it, ``last.ckpt`` would stay at the last periodic step.
+    """
+
+    def on_train_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if self.save_last and self._last_global_step_saved != trainer.global_step:
+            self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
+            return
+        super().on_train_end(trainer, pl_module)
+
+
 def checkpoint_callback(cfg: DictConfig, out_dir: Path) -> ModelCheckpoint:
     """The ModelCheckpoint of ``cfg.checkpoint``: ``last.ckpt`` plus periodic ones.
 
@@ -65,7 +80,7 @@ def checkpoint_callback(cfg: DictConfig, out_dir: Path) -> ModelCheckpoint:
     every_n_steps = ck.get("every_n_train_steps")
     every_n_epochs = None if every_n_steps else (ck.get("every_n_epochs") or 0)
     try:
-        return ModelCheckpoint(
+        return FinalLastCheckpoint(
             dirpath=str(out_dir / CHECKPOINT_DIR),
             filename="epoch{epoch:03d}-step{step:06d}",
             auto_insert_metric_name=False,

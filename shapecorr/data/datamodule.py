@@ -20,6 +20,7 @@ from shapecorr.data.datasets import PairDataset, PairSample, ShapeDataset
 from shapecorr.data.operators import OperatorConfig
 from shapecorr.data.operators import plain_container as _plain
 from shapecorr.data.shape import Normalization
+from shapecorr.data.validation import ValidationOptions
 from shapecorr.errors import ConfigError
 
 SPLITS = ("train", "val", "test")
@@ -140,6 +141,8 @@ class ShapePairDataModule(pl.LightningDataModule):
         (the embedded default dataset).
     shuffle_seed
         Seed of the training-pair shuffling generator (reproducible epochs).
+    validation
+        :class:`~shapecorr.data.validation.ValidationOptions` fields (``data.validation.*``).
     """
 
     def __init__(
@@ -154,6 +157,7 @@ class ShapePairDataModule(pl.LightningDataModule):
         prepare_workers: int | None = None,
         synthetic: Mapping | None = None,
         shuffle_seed: int = 0,
+        validation: Mapping | None = None,
     ):
         super().__init__()
         self.root = Path(os.path.expanduser(str(root)))
@@ -168,6 +172,7 @@ class ShapePairDataModule(pl.LightningDataModule):
                     raise ConfigError(f"unknown option(s) {sorted(unknown)} for split {split!r}; allowed: {sorted(allowed)}")
         self.normalization = _dataclass_from(Normalization, normalization)
         self.operators = OperatorConfig.from_options(operators)
+        self.validation = _dataclass_from(ValidationOptions, validation)
         self.cache_dir = cache_dir
         self.num_workers = num_workers
         self.prepare_workers = prepare_workers
@@ -225,6 +230,7 @@ class ShapePairDataModule(pl.LightningDataModule):
                 normalization=self.normalization,
                 operators=self.operators,
                 cache_dir=self.cache_dir,
+                validation=self.validation,
                 **self.split_selectors.get(split, {}),
             )
         return self._shapes[split]

@@ -42,9 +42,11 @@ from shapecorr.data.operators import (
     OperatorConfig,
     compute_operators,
     geodesics_cached,
+    geodesics_from_cached,
 )
 from shapecorr.data.shape import Normalization, Shape
-from shapecorr.errors import ConfigError, DatasetError
+from shapecorr.data.validation import CLI_PREFIX, ValidationOptions
+from shapecorr.errors import ConfigError, DatasetError, InvalidMeshError
 
 MESH_DIRS = ("off", "shapes")
 MESH_EXTENSIONS = (".off", ".ply", ".obj")
@@ -218,14 +220,29 @@ def find_mesh_files(root: Path) -> dict[str, Path]:
     if mesh_dir is None:
         raise DatasetError(f"no mesh sub-folder: expected one of {'/, '.join(MESH_DIRS)}/", root)
     files: dict[str, Path] = {}
+    skipped: list[str] = []
     for path in sorted(mesh_dir.iterdir()):
         if path.suffix.lower() in MESH_EXTENSIONS and path.is_file():
             if path.stem in files:
                 raise DatasetError(f"two mesh files named {path.stem!r}: {files[path.stem].name} and {path.name}", mesh_dir)
             files[path.stem] = path
+        elif path.is_dir():
+            skipped.append(f"{path.name}/ (a directory; sub-folders are not searched)")
+        elif not path.name.startswith("."):
+            skipped.append(f"{path.name} (not {'/'.join(MESH_EXTENSIONS)})")
+    if skipped:
+        import warnings
+
+        warnings.warn(f"{mesh_dir}: skipped {len(skipped)} entr{'y' if len(skipped) == 1 else 'ies'}: "
+                      f"{', '.join(skipped[:5])}{', ...' if len(skipped) > 5 else ''}", DatasetWarning, stacklevel=2)
     if not files:
-        raise DatasetError(f"no mesh files ({', '.join(MESH_EXTENSIONS)}) found", mesh_dir)
+        extra = f"; skipped: {', '.join(skipped[:5])}" if skipped else ""
+        raise DatasetError(f"no mesh files ({', '.join(MESH_EXTENSIONS)}) found{extra}", mesh_dir)
     return files
+
+
+class DatasetWarning(UserWarning):
+    """Entries of a dataset folder were skipped (directories or files that are not meshes)."""
 
 
 def select_names(
@@ -261,7 +278,7 @@ def select_names(
                     f"no split file for split {split!r} (expected splits/{split}.txt, or give an index range in "
                     "the data config; a folder without splits/ puts every shape in every split)", root)
             raise DatasetError("split file does not exist", path)
-        chosen = [line.strip() for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
+        chosen = [line.strip() for line in path.read_text(errors="surrogateescape").splitlines() if line.strip() and not line.startswith("#")]
         source = str(path)
     elif index_range is not None:
         start, stop = int(index_range[0]), int(index_range[1])
@@ -278,7 +295,9 @@ def select_names(
     return chosen
 
 
-def load_mesh_cached(cache: ShapeCache, path: Path, normalization: Normalization) -> Shape:
+def load_mesh_cached(
+    cache: ShapeCache, path: Path, normalization: Normalization, validation: ValidationOptions | None = None
+) -> Shape:
     """:func:`~shapecorr.data.io.load_shape` through the cache.
 
     Parsing and validating a 5k-vertex mesh file costs ~0.1-0.25 s, ten times more than reading its cached
@@ -286,11 +305,15 @@ def load_mesh_cached(cache: ShapeCache, path: Path, normalization: Normalization
     modification time (any change of the file is a miss) and the normalization.
     """
     stat = path.stat()
+    validation = ValidationOptions() if validation is None else validation
     identity = {"path": str(path.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
+    params = {**identity, "normalization": asdict(normalization)}
+    if validation != ValidationOptions():  # the defaults keep the keys of existing cache entries
+        params["validation"] = asdict(validation)
     key = CacheKey(
         "mesh",
         hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest(),
-        {**identity, "normalization": asdict(normalization)},
+        params,
         MESH_CACHE_VERSION,
         keep_float64=True,
     )
@@ -304,7 +327,7 @@ def load_mesh_cached(cache: ShapeCache, path: Path, normalization: Normalization
             scale=float(hit["scale"][0]),
             offset=hit["offset"].astype(np.float64),
         )
-    shape = load_shape(path, normalization=normalization)
+    shape = load_shape(path, normalization=normalization, validation=validation)
     if cache.writable:
         cache.put(key, {"verts": shape.verts.numpy(), "faces": shape.faces.numpy(),
                         "scale": np.array([shape.scale]), "offset": np.asarray(shape.offset, np.float64)})
@@ -312,7 +335,7 @@ def load_mesh_cached(cache: ShapeCache, path: Path, normalization: Normalization
 
 
 def sample_with_operators(
-    shape: Shape, operators: OperatorConfig, cache: ShapeCache, corres=None, corres_sym=None
+    shape: Shape, operators: OperatorConfig, cache: ShapeCache, corres=None, corres_sym=None, fallback: bool = True
 ) -> ShapeSample:
     """``shape`` with the operators of ``operators`` (from ``cache``, computed on a miss) as a :class:`ShapeSample`.
 
@@ -324,20 +347,55 @@ def sample_with_operators(
     cache : ShapeCache
     corres, corres_sym : (n_ref,) int64 tensor, optional
         Ground-truth reference indices (and their symmetric flip), when known.
+    fallback : bool
+        Robust Laplacian where the cotangent one has infinite weights (:func:`operators_with_fallback`).
     """
-    ops = compute_operators(cache, shape.verts.numpy(), shape.faces.numpy(), operators)
+    ops = operators_with_fallback(cache, shape, operators, fallback)
     return ShapeSample(shape=shape, operators=ops, corres=corres, corres_sym=corres_sym)
+
+
+def operators_with_fallback(cache: ShapeCache, shape: Shape, operators: OperatorConfig,
+                            fallback: bool = True) -> dict[str, dict]:
+    """:func:`compute_operators`, using the robust Laplacian for this shape where the cotangent one has
+    infinite weights (zero-area faces) when ``fallback`` (``data.validation.laplacian_fallback``), with a
+    warning naming the file; otherwise the error names the file and both options."""
+    from shapecorr.data.validation import MeshWarning
+
+    verts, faces = shape.verts.numpy(), shape.faces.numpy()
+    try:
+        return compute_operators(cache, verts, faces, operators)
+    except InvalidMeshError as err:
+        if operators.laplacian != "cotan" or "infinite weights" not in str(err):
+            raise
+        where = shape.path or shape.name
+        if not fallback:
+            raise InvalidMeshError(
+                f"{err.problem}; set {CLI_PREFIX}laplacian_fallback=true (robust Laplacian for such shapes) or "
+                "data.operators.laplacian=robust (for every shape)", where) from None
+        import warnings
+
+        warnings.warn(f"{where}: cotangent Laplacian has infinite weights (zero-area faces); using the robust "
+                      f"Laplacian for this shape ({CLI_PREFIX}laplacian_fallback=false refuses such shapes)",
+                      MeshWarning, stacklevel=2)
+        return compute_operators(cache, verts, faces, operators.with_request(laplacian="robust"))
+
+
+#: What ``ShapeDataset.prepare(geodesics=...)`` caches: rows from the ground-truth points (what the
+#: evaluation needs, ``R x n``) or the all-pairs matrix (``n x n``).
+GEODESIC_SOURCES = ("ground_truth", "all")
 
 
 def _prepare_one(args) -> str:
     """Worker: load one mesh and fill its cache entries (runs in a separate process)."""
-    path, normalization, operators, cache_root, geodesics = args
+    path, normalization, operators, cache_root, geodesics, sources, validation = args
     cache = ShapeCache(cache_root)
-    shape = load_mesh_cached(cache, Path(path), normalization)
+    shape = load_mesh_cached(cache, Path(path), normalization, validation)
     verts, faces = shape.verts.numpy(), shape.faces.numpy()
-    compute_operators(cache, verts, faces, operators)
-    if geodesics:
+    operators_with_fallback(cache, shape, operators, validation.laplacian_fallback)
+    if geodesics and sources is None:
         geodesics_cached(cache, verts, faces, method=geodesics)
+    elif geodesics:
+        geodesics_from_cached(cache, verts, faces, sources, method=geodesics)
     return shape.name
 
 
@@ -359,6 +417,8 @@ class ShapeDataset(Dataset):
         Root of the shape cache (default ``$SHAPECORR_CACHE`` or ``~/.cache/shapecorr``).
     require_corres
         Raise if a shape has no ``corres/<name>.vts``.
+    validation
+        Mesh-check relaxations (``data.validation.*``, :class:`~shapecorr.data.validation.ValidationOptions`).
     """
 
     def __init__(
@@ -372,8 +432,10 @@ class ShapeDataset(Dataset):
         operators: OperatorConfig = OperatorConfig(),
         cache_dir: str | os.PathLike | None = None,
         require_corres: bool = False,
+        validation: ValidationOptions | None = None,
     ):
         self.root = Path(root)
+        self.validation = ValidationOptions() if validation is None else validation
         self.split = split
         files = find_mesh_files(self.root)
         self.names = select_names(list(files), self.root, split, names, index_range, split_file)
@@ -420,14 +482,15 @@ class ShapeDataset(Dataset):
         """The normalized mesh of shape ``i`` (no operators); kept in memory once loaded."""
         shape = self._loaded.get(i)
         if shape is None:
-            shape = self._loaded[i] = load_mesh_cached(self.cache, self.paths[i], self.normalization)
+            shape = self._loaded[i] = load_mesh_cached(self.cache, self.paths[i], self.normalization, self.validation)
         return shape
 
     def __getitem__(self, i: int) -> ShapeSample:
         shape = self.load_shape(i)
         return sample_with_operators(shape, self.operators, self.cache,
                                      corres=self._read_corres(self._corres_paths[shape.name], shape),
-                                     corres_sym=self._read_corres(self._sym_paths[shape.name], shape))
+                                     corres_sym=self._read_corres(self._sym_paths[shape.name], shape),
+                                     fallback=self.validation.laplacian_fallback)
 
     @staticmethod
     def _read_corres(path: Path | None, shape: Shape) -> torch.Tensor | None:
@@ -440,14 +503,56 @@ class ShapeDataset(Dataset):
         shape = self.load_shape(i)
         return geodesics_cached(self.cache, shape.verts.numpy(), shape.faces.numpy(), method=method)
 
-    def prepare(self, num_workers: int | None = None, geodesics: str | None = None, progress: bool = True) -> None:
+    def geodesic_sources(self, i: int) -> np.ndarray:
+        """Sorted unique vertices of shape ``i`` that the evaluation needs geodesic rows from: its ground-truth
+        points (``.vts`` and ``.sym.vts``), or every vertex when it has none (identity ground truth)."""
+        shape = self.load_shape(i)
+        refs = [self._read_corres(p, shape) for p in (self._corres_paths[shape.name], self._sym_paths[shape.name])]
+        refs = [r.numpy() for r in refs if r is not None]
+        if not refs:
+            return np.arange(shape.n_verts, dtype=np.int64)
+        return np.unique(np.concatenate(refs)).astype(np.int64)
+
+    def ground_truth_geodesics(self, i: int, method: str = "heat"):
+        """Geodesic rows from the ground-truth points of shape ``i`` (:meth:`geodesic_sources`), cached.
+
+        Returns
+        -------
+        :class:`~shapecorr.geometry.geodesics.SourceDistances`, rows ``(u, n)`` float32 (normalized units).
+        """
+        shape = self.load_shape(i)
+        return geodesics_from_cached(self.cache, shape.verts.numpy(), shape.faces.numpy(),
+                                     self.geodesic_sources(i), method=method)
+
+    def prepare(self, num_workers: int | None = None, geodesics: str | None = None, progress: bool = True,
+                geodesic_sources: str = "ground_truth") -> None:
         """Compute every missing cache entry (the operators of ``self.operators``, optionally geodesics).
 
-        Runs in ``num_workers`` processes (default: the CPU count, at most the number of shapes) with a
+        Runs in ``num_workers`` processes (default: the CPU count, at most the number of shapes, and at most
+        as many as fit in the available memory by :func:`shapecorr.data.memory.prepare_bytes`) with a
         progress bar; entries already cached are only read. Safe to interrupt: each entry is written atomically.
+        ``geodesic_sources``: ``"ground_truth"`` caches the rows from each shape's ground-truth points
+        (:meth:`ground_truth_geodesics`, what the evaluation reads), ``"all"`` the all-pairs matrix.
         """
-        jobs = [(p, self.normalization, self.operators, self.cache.root, geodesics) for p in self.paths]
-        workers = min(os.cpu_count() or 1, len(jobs)) if num_workers is None else num_workers
+        from shapecorr.data.memory import prepare_bytes, workers_for_memory
+
+        if geodesic_sources not in GEODESIC_SOURCES:
+            raise DatasetError(f"geodesic_sources must be one of {GEODESIC_SOURCES}, got {geodesic_sources!r}")
+        sources = [None] * len(self.paths)
+        if geodesics and geodesic_sources == "ground_truth":
+            sources = [self.geodesic_sources(i) for i in range(len(self.paths))]
+        jobs = [(p, self.normalization, self.operators, self.cache.root, geodesics, s, self.validation)
+                for p, s in zip(self.paths, sources)]
+        estimates = []
+        for i in range(len(self.paths)):
+            n = self.load_shape(i).n_verts
+            n_src = (n if sources[i] is None else len(sources[i])) if geodesics else 0
+            estimates.append(prepare_bytes(n, self.operators.n_eig, n_src))
+        biggest = self.names[int(np.argmax(estimates))] if estimates else ""
+        workers = workers_for_memory(
+            estimates, num_workers, f"preparing shape {biggest!r} of {self.root}",
+            "free memory, lower the eigenpairs (data.operators.n_eig), give it fewer ground-truth points, or "
+            "evaluate it at a working resolution (e.g. remesh it first)")
         desc = f"preparing {self.root.name}" + (f" [{self.split}]" if self.split else "")
         if workers <= 1:
             for job in tqdm(jobs, desc=desc, unit="shape", disable=not progress):
@@ -467,7 +572,7 @@ def read_pair_file(path: str | os.PathLike) -> list[tuple[str, str]]:
     if not path.is_file():
         raise DatasetError("pair list file does not exist", path)
     pairs = []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    for lineno, line in enumerate(path.read_text(errors="surrogateescape").splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -521,7 +626,10 @@ class PairDataset(Dataset):
             keep = np.linspace(0, len(self.pairs) - 1, max_pairs).round().astype(int)
             self.pairs = [self.pairs[k] for k in keep]
         if not self.pairs:
-            raise DatasetError("the pair list is empty (a single shape without self-pairs?)", shapes.root)
+            raise DatasetError(
+                f"the pair list is empty: the split has {len(shapes)} shape(s) ({', '.join(shapes.names[:3])}) and "
+                "self-pairs are off; a pair needs two shapes (meshes directly inside off/ or shapes/; sub-folders "
+                "are not searched)", shapes.root)
 
     def _as_index(self, item: int | str) -> int:
         if isinstance(item, str):

@@ -55,6 +55,7 @@ from shapecorr.data.shape import Normalization, Shape, make_shape
 from shapecorr.data.validation import (
     DEFAULT_DEGENERATE_TOL,
     DEFAULT_MAX_DEGENERATE_FRACTION,
+    ValidationOptions,
     validate_mesh,
 )
 from shapecorr.errors import ConfigError, CorrespondenceError, InvalidMeshError, MeshReadError
@@ -248,6 +249,7 @@ def read_mesh(
     degenerate_tol: float = DEFAULT_DEGENERATE_TOL,
     max_degenerate_fraction: float = DEFAULT_MAX_DEGENERATE_FRACTION,
     allow_unreferenced: bool = False,
+    allow_disconnected: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Read a triangle mesh from an OFF, PLY or OBJ file, keeping the file's vertex order.
 
@@ -258,8 +260,8 @@ def read_mesh(
     validate
         Run :func:`~shapecorr.data.validation.validate_mesh` (raising on invalid content, warning on
         non-manifold or multi-component meshes). ``False`` returns the arrays as parsed.
-    degenerate_tol, max_degenerate_fraction, allow_unreferenced
-        Passed to :func:`~shapecorr.data.validation.validate_mesh`.
+    degenerate_tol, max_degenerate_fraction, allow_unreferenced, allow_disconnected
+        Passed to :func:`~shapecorr.data.validation.validate_mesh` (``data.validation.*`` options).
 
     Returns
     -------
@@ -302,12 +304,16 @@ def read_mesh(
             degenerate_tol=degenerate_tol,
             max_degenerate_fraction=max_degenerate_fraction,
             allow_unreferenced=allow_unreferenced,
+            allow_disconnected=allow_disconnected,
         )
     return verts, faces
 
 
 def load_shape(
-    path: str | PathLike, normalization: Normalization | None = Normalization(), validate: bool = True
+    path: str | PathLike,
+    normalization: Normalization | None = Normalization(),
+    validate: bool = True,
+    validation: ValidationOptions | None = None,
 ) -> Shape:
     """Read a mesh file into a normalized :class:`~shapecorr.data.shape.Shape` named after the file stem.
 
@@ -319,9 +325,19 @@ def load_shape(
         How to center and scale (``None``: keep the raw coordinates); the transform is stored on the shape.
     validate
         Validate the mesh (see :func:`read_mesh`).
+    validation
+        The ``data.validation.*`` relaxations (default :class:`~shapecorr.data.validation.ValidationOptions`).
     """
     path = Path(path)
-    verts, faces = read_mesh(path, validate=validate)
+    opts = ValidationOptions() if validation is None else validation
+    verts, faces = read_mesh(
+        path,
+        validate=validate,
+        degenerate_tol=opts.degenerate_tol,
+        max_degenerate_fraction=opts.max_degenerate_fraction,
+        allow_unreferenced=opts.allow_unreferenced,
+        allow_disconnected=opts.allow_disconnected,
+    )
     try:
         return make_shape(verts, faces, name=path.stem, path=path, normalization=normalization)
     except InvalidMeshError as err:
@@ -466,8 +482,12 @@ def write_vts(path: str | PathLike, idx_zero_based: np.ndarray) -> None:
     _write_indices(path, _check_indices(idx_zero_based, path, "vts indices") + 1)
 
 
+#: The evaluate.py option that says whether map files are one-based (named in every map-index error).
+MAPS_ONE_BASED_OPTION = "maps_one_based"
+
+
 def read_map(
-    path: str | PathLike, one_based: bool = False, n_source: int | None = None, n_target: int | None = None
+    path: str | PathLike, one_based: bool | None = False, n_source: int | None = None, n_target: int | None = None
 ) -> np.ndarray:
     """Read a point-to-point map: one target vertex index per line, line i for source vertex i.
 
@@ -476,7 +496,10 @@ def read_map(
     path
         The map file (``.map``: zero-based; ``.txt``: zero-based unless one_based=True (SHREC), see :func:`read_correspondence`).
     one_based
-        The file's indices start at 1.
+        The file's indices start at 1 (True) or 0 (False). None: not said; then a file that never uses
+        index 0 is refused (it is most likely one-based, and reading it zero-based would shift every vertex
+        silently), and so is a file using index ``n_target`` (only valid one-based); the message names
+        ``maps_one_based``.
     n_source
         Expected number of lines (source vertices).
     n_target
@@ -490,7 +513,8 @@ def read_map(
     Raises
     ------
     CorrespondenceError
-        Missing/unreadable/empty file, a line without exactly one integer, wrong length, index out of range.
+        Missing/unreadable/empty file, a line without exactly one integer, wrong length, index out of range,
+        an ambiguous base with ``one_based=None``.
     """
     path = Path(path)
     values, numbers = [], []
@@ -504,7 +528,19 @@ def read_map(
         numbers.append(number)
     if not values:
         raise CorrespondenceError("file is empty (no indices)", path)
-    p2p = np.array(values, dtype=np.int64) - (1 if one_based else 0)
+    raw = np.array(values, dtype=np.int64)
+    if one_based is None:
+        smallest, largest = int(raw.min()), int(raw.max())
+        if smallest >= 1:
+            hint = f"; it uses index {largest} = n" if n_target is not None and largest == n_target else ""
+            raise CorrespondenceError(
+                f"the map never uses index 0 (indices {smallest}..{largest}{hint}): it looks one-based, and read "
+                f"as zero-based every vertex would be off by one. Say which: {MAPS_ONE_BASED_OPTION}=true "
+                f"(indices start at 1) or {MAPS_ONE_BASED_OPTION}=false (they start at 0)",
+                path,
+            )
+        one_based = False
+    p2p = raw - (1 if one_based else 0)
     if n_source is not None and len(p2p) != n_source:
         raise CorrespondenceError(f"map has {len(p2p)} entries but the source shape has {n_source} vertices", path)
     upper = n_target if n_target is not None else np.iinfo(np.int64).max
@@ -515,8 +551,9 @@ def read_map(
         if n_target is not None:
             valid = f"{base}..{n_target - 1 + base} for a target with n = {n_target} vertices"
         raise CorrespondenceError(
-            f"line {numbers[first]}: index {values[first]} is out of range ({'one' if one_based else 'zero'}-based; "
-            f"valid: {valid})",
+            f"line {numbers[first]}: index {values[first]} is out of range ({'one' if one_based else 'zero'}-based "
+            f"as {MAPS_ONE_BASED_OPTION}={'true' if one_based else 'false'} says; valid: {valid}); if the file is "
+            f"{'zero' if one_based else 'one'}-based, set {MAPS_ONE_BASED_OPTION}={'false' if one_based else 'true'}",
             path,
         )
     return p2p

@@ -500,6 +500,44 @@ def geodesics_cached(cache: ShapeCache, verts, faces, method: str = "heat") -> n
     return compute_operator(cache, verts, faces, "geodesics", {"method": method})["geodesics"]
 
 
+#: Version of the cached geodesic rows of :func:`geodesics_from_cached` (bump when their computation changes).
+#: Not a registered operator: the rows depend on a shape's ground truth (the evaluation's sources), which no
+#: model requests.
+GEODESICS_FROM_VERSION = 1
+#: Stored in place of ``inf`` (no path: another connected component) in cached distance rows; the cache
+#: refuses non-finite values and a geodesic distance is never negative.
+UNREACHABLE = -1.0
+
+
+def geodesics_from_cached(cache: ShapeCache, verts, faces, sources, method: str = "heat"):
+    """Geodesic distances from ``sources (s,) int`` (e.g. a shape's ground-truth points), cached.
+
+    Returns
+    -------
+    :class:`~shapecorr.geometry.geodesics.SourceDistances`
+        Rows ``(u, n)`` float32 for the ``u`` unique sources (``inf`` across connected components).
+    """
+    import hashlib
+
+    from shapecorr.geometry.geodesics import SourceDistances, geodesic_distances_from
+
+    unique = np.unique(np.asarray(sources, dtype=np.int64))
+    params = {"method": method, "n_sources": int(unique.size),
+              "sources_sha256": hashlib.sha256(unique.tobytes()).hexdigest()}
+
+    def compute():
+        rows = geodesic_distances_from(verts, faces, unique, method=method)
+        rows[~np.isfinite(rows)] = UNREACHABLE
+        return {"sources": unique, "rows": rows}
+
+    hit = cache.get_or_compute("geodesics_from", verts, faces, params, GEODESICS_FROM_VERSION, compute)
+    rows = hit["rows"]
+    if (rows < 0).any():
+        rows = rows.copy()
+        rows[rows < 0] = np.inf
+    return SourceDistances(hit["sources"].astype(np.int64), rows)
+
+
 # -- the built-in operators ---------------------------------------------------------------------------------
 
 def _eigenbasis(ctx: OperatorContext, p: dict) -> dict:
@@ -600,6 +638,7 @@ __all__ = [
     "compute_operators",
     "feature_names",
     "geodesics_cached",
+    "geodesics_from_cached",
     "get_operator",
     "merge_by",
     "merge_requests",

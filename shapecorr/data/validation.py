@@ -9,8 +9,12 @@ Two levels:
   fraction of zero-area faces. Those problems raise :class:`~shapecorr.errors.InvalidMeshError`.
 
 Properties that real meshes often have and that most methods tolerate (non-manifold edges or vertices,
-several connected components, a few degenerate faces) emit a :class:`MeshWarning` naming the file and
-the mesh still loads: a method that cannot handle them must refuse them itself.
+several connected components, a few degenerate faces, duplicate faces) emit a :class:`MeshWarning` naming the
+file and the mesh still loads: a method that cannot handle them must refuse them itself.
+
+Every relaxation is an option of :class:`ValidationOptions`, set from the command line as
+``data.validation.<name>=<value>`` (``configs/data/folder.yaml``); each error names the file and the option
+that relaxes it (:data:`CLI_PREFIX`).
 
 Degenerate faces. A face counts as degenerate when its area is at most ``degenerate_tol`` times the mean
 face area of the mesh (relative, so the test does not depend on the units). Remeshed scans contain a few
@@ -22,6 +26,7 @@ connectivity error, not a sliver.
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 from os import PathLike
 
 import igl
@@ -29,7 +34,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from shapecorr.errors import InvalidMeshError
+from shapecorr.errors import ConfigError, InvalidMeshError
 from shapecorr.geometry.mesh import check_mesh_arrays
 from shapecorr.geometry.mesh import format_indices as _listing
 
@@ -42,6 +47,45 @@ DEFAULT_DEGENERATE_TOL = 1e-12
 #: handful of slivers found in remeshed scans (10 faces of a 10k-face FAUST_r shape) but rejects meshes
 #: whose Laplacian would be dominated by them.
 DEFAULT_MAX_DEGENERATE_FRACTION = 1e-3
+
+#: Where the validation options live in the data config (named in error messages).
+CLI_PREFIX = "data.validation."
+
+
+@dataclass(frozen=True)
+class ValidationOptions:
+    """How strictly meshes are checked on load (``data.validation.*``; see the module docstring).
+
+    Attributes
+    ----------
+    max_degenerate_fraction
+        Largest fraction of zero-area faces accepted (with a warning); more raises.
+    degenerate_tol
+        A face is zero-area when its area is at most this times the mean face area.
+    allow_unreferenced
+        Accept vertices no face uses (with a warning; they get zero mass).
+    allow_disconnected
+        Accept several connected components (with a warning); the evaluation then computes geodesics per
+        component and excludes reference points on small islands (counted in ``metrics.json``). False raises.
+    laplacian_fallback
+        Where the cotangent Laplacian has infinite weights (zero-area faces), use the robust Laplacian for
+        that shape, with a warning naming the file. False raises.
+    """
+
+    max_degenerate_fraction: float = DEFAULT_MAX_DEGENERATE_FRACTION
+    degenerate_tol: float = DEFAULT_DEGENERATE_TOL
+    allow_unreferenced: bool = False
+    allow_disconnected: bool = True
+    laplacian_fallback: bool = True
+
+    def __post_init__(self):
+        if not 0.0 <= float(self.max_degenerate_fraction) <= 1.0:
+            raise ConfigError(
+                f"{CLI_PREFIX}max_degenerate_fraction must be in [0, 1], got {self.max_degenerate_fraction}"
+            )
+        if not float(self.degenerate_tol) >= 0.0:
+            raise ConfigError(f"{CLI_PREFIX}degenerate_tol must be >= 0, got {self.degenerate_tol}")
+
 
 class MeshWarning(UserWarning):
     """A mesh has a property some methods cannot handle (non-manifold, several components, slivers)."""
@@ -72,6 +116,31 @@ def non_manifold_edges(faces: np.ndarray) -> np.ndarray:
     return np.stack([shared // base, shared % base], axis=1)
 
 
+def duplicate_faces(faces: np.ndarray) -> np.ndarray:
+    """Faces using the same three vertices as an earlier face (in any order).
+
+    Parameters
+    ----------
+    faces : (f, 3) int
+
+    Returns
+    -------
+    (d,) int64
+        Indices of the repeats (the first occurrence is not listed).
+    """
+    f = np.sort(np.asarray(faces, dtype=np.int64), axis=1)
+    _, first = np.unique(f, axis=0, return_index=True)
+    repeats = np.ones(len(f), dtype=bool)
+    repeats[first] = False
+    return np.flatnonzero(repeats)
+
+
+def _fraction_needed(count: int, total: int) -> str:
+    """A round fraction just above ``count / total`` (for the option value an error suggests)."""
+    needed = count / max(total, 1)
+    return f"{float(f'{needed * 1.5:.1g}'):g}" if needed > 0 else "0"
+
+
 def validate_mesh(
     verts: np.ndarray,
     faces: np.ndarray,
@@ -79,6 +148,7 @@ def validate_mesh(
     degenerate_tol: float = DEFAULT_DEGENERATE_TOL,
     max_degenerate_fraction: float = DEFAULT_MAX_DEGENERATE_FRACTION,
     allow_unreferenced: bool = False,
+    allow_disconnected: bool = True,
 ) -> list[str]:
     """Check that a triangle mesh is usable by the spectral pipeline.
 
@@ -95,6 +165,8 @@ def validate_mesh(
         Largest fraction of degenerate faces accepted (with a warning); more raises.
     allow_unreferenced
         Accept vertices that no face uses (with a warning) instead of raising.
+    allow_disconnected
+        Accept several connected components (with a warning) instead of raising.
 
     Returns
     -------
@@ -128,7 +200,8 @@ def validate_mesh(
             "zero-based)"
         )
         if not allow_unreferenced:
-            hint = "; they would get zero mass (pass allow_unreferenced=True to accept)"
+            hint = (f"; they would get zero mass: remove them, or accept them with {CLI_PREFIX}allow_unreferenced=true "
+                    "(Python: allow_unreferenced=True)")
             raise InvalidMeshError(message + hint, path)
         messages.append(message)
 
@@ -141,8 +214,20 @@ def validate_mesh(
             f"face {_listing(degenerate)}, zero-based)"
         )
         if len(degenerate) > max_degenerate_fraction * len(f):
-            raise InvalidMeshError(message + f", more than the allowed fraction {max_degenerate_fraction:g}", path)
+            raise InvalidMeshError(
+                message + f", more than the allowed fraction {max_degenerate_fraction:g}; accept them with "
+                f"{CLI_PREFIX}max_degenerate_fraction={_fraction_needed(len(degenerate), len(f))} (the robust "
+                "Laplacian is used where cotangent weights become infinite) or clean the mesh",
+                path,
+            )
         messages.append(message)
+
+    duplicates = duplicate_faces(f)
+    if len(duplicates):
+        messages.append(
+            f"{len(duplicates)} duplicate faces (the same three vertices as an earlier face; face "
+            f"{_listing(duplicates)}, zero-based): they make their edges look non-manifold"
+        )
 
     bad_edges = non_manifold_edges(f)
     if len(bad_edges):
@@ -169,9 +254,15 @@ def validate_mesh(
     sizes = np.bincount(labels[referenced])
     sizes = np.sort(sizes[sizes > 0])[::-1]
     if len(sizes) > 1:
-        messages.append(
-            f"mesh has {len(sizes)} connected components (vertex counts {_listing(sizes)})"
-        )
+        message = f"mesh has {len(sizes)} connected components (vertex counts {_listing(sizes)})"
+        if not allow_disconnected:
+            raise InvalidMeshError(
+                message + f"; accept it with {CLI_PREFIX}allow_disconnected=true (geodesics per component, "
+                "reference points on the smaller components excluded from the errors)",
+                path,
+            )
+        messages.append(message + "; geodesics are computed per component and reference points on the smaller "
+                        "ones are excluded from the geodesic errors")
 
     messages = [f"{_where(path)}{message}" for message in messages]
     for message in messages:

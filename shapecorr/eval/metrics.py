@@ -99,8 +99,11 @@ def geodesic_errors(p2p, dist_y, ref_x, ref_y, sqrt_area_y: float) -> np.ndarray
     ----------
     p2p : (n_x,) int
         For each vertex of X its matched vertex of Y (zero-based).
-    dist_y : (n_y, n_y) float
-        Geodesic distances on Y (symmetric; ``dist_y[a, b]`` is used with a = prediction, b = ground truth).
+    dist_y : (n_y, n_y) float, or SourceDistances
+        Geodesic distances on Y: a full matrix (``dist_y[a, b]`` is used with a = prediction, b = ground
+        truth), or the rows from Y's ground-truth points (:class:`~shapecorr.geometry.geodesics.SourceDistances`,
+        whose sources must include every ``ref_y``; then ``d(ref_y[r], p2p[ref_x[r]])`` is read from row
+        ``ref_y[r]``, memory ``O(R n_y)``).
     ref_x : (R,) int
         Vertex of X of each reference point.
     ref_y : (R,) int
@@ -111,12 +114,16 @@ def geodesic_errors(p2p, dist_y, ref_x, ref_y, sqrt_area_y: float) -> np.ndarray
     Returns
     -------
     (R,) float64
-        ``dist_y[p2p[ref_x], ref_y] / sqrt_area_y``.
+        ``d_Y(p2p[ref_x], ref_y) / sqrt_area_y``.
     """
-    dist_y = as_numpy(dist_y)
-    if dist_y.ndim != 2 or dist_y.shape[0] != dist_y.shape[1]:
-        raise CorrespondenceError(f"dist_y must be a square (n_y, n_y) matrix, got shape {dist_y.shape}")
-    n_y = dist_y.shape[0]
+    rows = callable(getattr(dist_y, "lookup", None))
+    if rows:
+        n_y = dist_y.n_verts
+    else:
+        dist_y = as_numpy(dist_y)
+        if dist_y.ndim != 2 or dist_y.shape[0] != dist_y.shape[1]:
+            raise CorrespondenceError(f"dist_y must be a square (n_y, n_y) matrix, got shape {dist_y.shape}")
+        n_y = dist_y.shape[0]
     p2p = _check_index(p2p, n_y, "p2p (map X -> Y)")
     ref_x = _check_index(ref_x, p2p.shape[0], "reference points on X")
     ref_y = _check_index(ref_y, n_y, "reference points on Y")
@@ -126,7 +133,10 @@ def geodesic_errors(p2p, dist_y, ref_x, ref_y, sqrt_area_y: float) -> np.ndarray
         )
     if not sqrt_area_y > 0:
         raise NumericalError(f"sqrt(area) of the target must be positive, got {sqrt_area_y}")
-    errors = dist_y[p2p[ref_x], ref_y].astype(np.float64) / float(sqrt_area_y)
+    if rows:
+        errors = dist_y.lookup(ref_y, p2p[ref_x]) / float(sqrt_area_y)
+    else:
+        errors = dist_y[p2p[ref_x], ref_y].astype(np.float64) / float(sqrt_area_y)
     return _check_finite(errors, "geodesic errors (is the target mesh disconnected?)")
 
 

@@ -3,7 +3,11 @@
 Protocol (docs/evaluation.md §1): for a pair (X, Y) the map X -> Y is scored at
 the reference points of the ground truth (``corres/<name>.vts``; the identity for shapes sharing their
 connectivity without ``.vts``) with geodesic distances on Y from the shape cache, normalized by sqrt(area(Y))
-computed from Y's faces. When Y has a mirrored ground truth (``.sym.vts``) the same map is also scored
+computed from Y's faces. The cache holds, per target, the rows from its ground-truth points only
+(``e_r = d_Y(p(gx[r]), gy[r])`` is read from row ``gy[r]``; ``R x n`` float32, never ``n x n``).
+Reference points on small islands of X or Y (connected components other than the largest) are excluded and
+counted (``n_excluded`` per pair, ``n_excluded_points`` in ``metrics.json``); a prediction that lands on an
+island of Y is scored at the nearest vertex of Y's largest component. When Y has a mirrored ground truth (``.sym.vts``) the same map is also scored
 against it; that number is reported separately and never mixed into the main error.
 
 Per pair, under the output folder::
@@ -39,6 +43,7 @@ import json
 import multiprocessing
 import os
 import time
+import warnings
 from collections import OrderedDict
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, fields, replace
@@ -60,7 +65,8 @@ from shapecorr.matching.result import MatchResult
 RECORDS_DIR = "pairs"
 #: Number of ShapeSamples (eigenbasis + descriptors) kept in memory per process (~5 MB each at 5k vertices).
 DEFAULT_SAMPLE_CACHE = 32
-#: Number of geodesic matrices kept in memory per process (100 MB each at 5k vertices).
+#: Number of per-shape geodesic rows (from the ground-truth points, 4 R n bytes: 70 MB for FAUST_r) kept in memory
+#: per process.
 DEFAULT_GEODESIC_CACHE = 2
 GEODESIC_METHODS = ("heat", "exact")
 #: The time of the frame compared with the target (x fully deformed onto y).
@@ -96,6 +102,8 @@ class PairRecord:
         two-sided / one-sided Chamfer distance between the frame at t = 1 and the target (fractions of
         sqrt(area(target))), relative volume change of that frame (closed meshes only), and the conformal
         distortion of the frames with 0 <= t <= 1 averaged over those frames. None otherwise.
+    n_excluded : int
+        Reference points excluded because they lie on a small island of the source or target mesh.
     """
 
     source: str
@@ -111,6 +119,7 @@ class PairRecord:
     chamfer_one_sided: float | None = None
     volume_change: float | None = None
     deformation_conformal_distortion: float | None = None
+    n_excluded: int = 0
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "PairRecord":
@@ -163,7 +172,7 @@ class EvalSettings:
 # --------------------------------------------------------------------------------------------------------
 # Scoring one map
 # --------------------------------------------------------------------------------------------------------
-def score_map(p2p, x, y, dist_y: np.ndarray, clamp: float = metrics.CONFORMAL_DISTORTION_CLAMP) -> dict[str, Any]:
+def score_map(p2p, x, y, dist_y, clamp: float = metrics.CONFORMAL_DISTORTION_CLAMP) -> dict[str, Any]:
     """Score a map x -> y against the ground truth of the pair.
 
     Parameters
@@ -172,14 +181,17 @@ def score_map(p2p, x, y, dist_y: np.ndarray, clamp: float = metrics.CONFORMAL_DI
         Map x -> y.
     x, y : ShapeSample
         The pair (``corres``/``corres_sym`` give the ground truth).
-    dist_y : (n_y, n_y) float
-        Geodesic distances on y.
+    dist_y : (n_y, n_y) float, or SourceDistances
+        Geodesic distances on y: a full matrix, or the rows from y's ground-truth points
+        (:meth:`~shapecorr.data.datasets.ShapeDataset.ground_truth_geodesics`).
     clamp : float
         Conformal-distortion clamp.
 
     Returns
     -------
-    dict with ``errors (R,)``, ``errors_sym (R,)`` or None, and ``conformal_distortion`` (float).
+    dict with ``errors (R',)``, ``errors_sym (R',)`` or None, ``conformal_distortion`` (float) and
+    ``n_excluded`` (int): reference points on a small island (a connected component other than the
+    largest one) of x or y are excluded from the errors (see :func:`island_points`), ``R' = R - n_excluded``.
     """
     p2p = np.asarray(p2p.detach().cpu().numpy() if hasattr(p2p, "detach") else p2p)
     n_x, n_y = x.shape.n_verts, y.shape.n_verts
@@ -188,19 +200,99 @@ def score_map(p2p, x, y, dist_y: np.ndarray, clamp: float = metrics.CONFORMAL_DI
             f"the map of pair {pair_name(x.name, y.name)} has {p2p.shape[0] if p2p.ndim else 0} entries but "
             f"{x.name} has {n_x} vertices"
         )
-    if dist_y.shape != (n_y, n_y):
-        raise CorrespondenceError(f"geodesic matrix of {y.name} has shape {dist_y.shape}, expected ({n_y}, {n_y})")
+    shape_of = (dist_y.n_verts,) if hasattr(dist_y, "n_verts") else np.shape(dist_y)
+    if shape_of not in ((n_y,), (n_y, n_y)):
+        raise CorrespondenceError(f"geodesic distances of {y.name} have shape {shape_of}, expected ({n_y}, {n_y})")
     as_np = lambda t: None if t is None else t.detach().cpu().numpy()  # noqa: E731
+    if (x.corres is None) != (y.corres is None):
+        missing, other = (x, y) if x.corres is None else (y, x)
+        where = missing.shape.path.parent.parent if missing.shape.path is not None else None
+        raise CorrespondenceError(
+            f"ground truth corres/{missing.name}.vts is missing for {missing.name} but present for {other.name}: "
+            f"add it, or evaluate only shapes that all have (or all lack) ground truth",
+            where,
+        )
     faces_x, faces_y = as_np(x.shape.faces), as_np(y.shape.faces)
     verts_x, verts_y = as_np(x.shape.verts), as_np(y.shape.verts)
     ref_x, ref_y = ground_truth_indices(as_np(x.corres), as_np(y.corres), n_x, n_y, faces_x, faces_y)
+    sym_y = as_np(y.corres_sym) if (y.corres_sym is not None and x.corres is not None) else None
+    keep = np.ones(ref_x.shape, dtype=bool)
+    for sample, refs in ((x, ref_x), (y, ref_y), (y, sym_y)):
+        if refs is not None:
+            on_body = island_points(sample, refs)
+            _warn_islands_once(sample, int((~on_body).sum()), on_body.size)
+            keep &= on_body
+    n_excluded = int((~keep).sum())
     sqrt_area_y = float(np.sqrt(metrics.surface_area(verts_y, faces_y)))
-    errors = metrics.geodesic_errors(p2p, dist_y, ref_x, ref_y, sqrt_area_y)
+    mapped = _onto_main_component(y, p2p)
+    errors = metrics.geodesic_errors(mapped, dist_y, ref_x[keep], ref_y[keep], sqrt_area_y)
     errors_sym = None
-    if y.corres_sym is not None and x.corres is not None:
-        errors_sym = metrics.geodesic_errors(p2p, dist_y, ref_x, as_np(y.corres_sym), sqrt_area_y)
+    if sym_y is not None:
+        errors_sym = metrics.geodesic_errors(mapped, dist_y, ref_x[keep], sym_y[keep], sqrt_area_y)
     distortion = metrics.map_conformal_distortion(verts_x, faces_x, verts_y, p2p, clamp)
-    return {"errors": errors, "errors_sym": errors_sym, "conformal_distortion": distortion}
+    return {"errors": errors, "errors_sym": errors_sym, "conformal_distortion": distortion, "n_excluded": n_excluded}
+
+
+class IslandWarning(UserWarning):
+    """Reference points on small islands of a mesh were excluded from the errors (one warning per file)."""
+
+
+#: Files already warned about by :func:`_warn_islands_once` in this process.
+_WARNED_ISLANDS: set[str] = set()
+
+
+def _warn_islands_once(sample, n_off: int, n_refs: int) -> None:
+    where = str(sample.shape.path or sample.name)
+    if n_off == 0 or where in _WARNED_ISLANDS:
+        return
+    _WARNED_ISLANDS.add(where)
+    warnings.warn(
+        f"{where}: {n_off} of {n_refs} reference points lie on small islands (connected components other than "
+        "the largest); they are excluded from the geodesic errors of every pair with this shape (counted in "
+        "n_excluded_points of metrics.json)",
+        IslandWarning,
+        stacklevel=3,
+    )
+
+
+def _main_component(sample) -> np.ndarray | None:
+    """``(n,)`` bool mask of the largest connected component of a sample's mesh, or None when connected."""
+    from shapecorr.geometry.geodesics import vertex_components
+
+    n_comp, labels = vertex_components(sample.shape.n_verts, sample.shape.faces.detach().cpu().numpy())
+    if n_comp == 1:
+        return None
+    return labels == np.argmax(np.bincount(labels))
+
+
+def island_points(sample, refs) -> np.ndarray:
+    """``(R,)`` bool: True for the reference vertices ``refs (R,)`` on the largest component of the mesh.
+
+    Scans often carry tiny floating pieces beside the body; the geodesic distance from the body to them is
+    infinite, so reference points there cannot be scored and are excluded (and counted).
+    """
+    main = _main_component(sample)
+    refs = np.asarray(refs, dtype=np.int64)
+    return np.ones(refs.shape, dtype=bool) if main is None else main[refs]
+
+
+def _onto_main_component(y, p2p: np.ndarray) -> np.ndarray:
+    """``p2p`` with every vertex mapped onto a small island of y moved to the nearest (Euclidean) vertex of
+    y's largest component, so that its error is finite and large rather than infinite."""
+    main = _main_component(y)
+    if main is None:
+        return p2p
+    off = ~main[p2p]
+    if not off.any():
+        return p2p
+    from scipy.spatial import cKDTree
+
+    verts = y.shape.verts.detach().cpu().numpy()
+    body = np.flatnonzero(main)
+    _, nearest = cKDTree(verts[body]).query(verts[p2p[off]])
+    out = p2p.copy()
+    out[off] = body[nearest]
+    return out
 
 
 def unit_time_index(times, atol: float = TIME_ATOL) -> int | None:
@@ -488,7 +580,7 @@ class PairEvaluator:
         self.shapes, self.matcher, self.out_dir, self.settings = shapes, matcher, Path(out_dir), settings
         self.device = torch.device(settings.device)
         self.sample = _LRU(lambda i: shapes[i], settings.sample_cache)
-        self.geodesics = _LRU(lambda j: shapes.geodesics(j, method=settings.geodesics), settings.geodesic_cache)
+        self.geodesics = _LRU(lambda j: shapes.ground_truth_geodesics(j, method=settings.geodesics), settings.geodesic_cache)
 
     def __call__(self, i: int, j: int) -> PairRecord:
         start = time.perf_counter()
@@ -518,6 +610,7 @@ class PairEvaluator:
             mean_error=float(errors.mean()),
             median_error=float(np.median(errors)),
             n_points=int(errors.shape[0]),
+            n_excluded=int(scores["n_excluded"]),
             seconds=seconds,
             eval_seconds=0.0,
             conformal_distortion=float(scores["conformal_distortion"]),
@@ -534,6 +627,11 @@ _WORKER: PairEvaluator | None = None
 
 def _init_worker(shapes, matcher, out_dir, settings, threads: int) -> None:
     global _WORKER
+    import signal
+
+    # Ctrl-C reaches the whole process group: the parent stops the run (one line, see shapecorr.cli.evaluate);
+    # the workers finish their current pair instead of each printing a traceback.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(threads)
     _WORKER = PairEvaluator(shapes, matcher, out_dir, settings)
 
@@ -603,14 +701,18 @@ def evaluate_pairs(
                 initargs=(shapes, matcher, str(out_dir), settings, threads),
             ) as pool:
                 pending = {pool.submit(_run_in_worker, i, j) for i, j in todo}
-                while pending:
-                    done, pending = wait(pending, return_when=FIRST_EXCEPTION)
-                    for future in done:
-                        if future.exception() is not None:
-                            for other in pending:
-                                other.cancel()
-                            raise future.exception()
-                        bar.update()
+                try:
+                    while pending:
+                        done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+                        for future in done:
+                            if future.exception() is not None:
+                                for other in pending:
+                                    other.cancel()
+                                raise future.exception()
+                            bar.update()
+                except KeyboardInterrupt:
+                    pool.shutdown(wait=False, cancel_futures=True)  # running pairs finish, queued ones are dropped
+                    raise
     finally:
         bar.close()
     return [load_record(out_dir, a, b)[0] for a, b in names]
@@ -619,6 +721,11 @@ def evaluate_pairs(
 # --------------------------------------------------------------------------------------------------------
 # DDP sharding
 # --------------------------------------------------------------------------------------------------------
+def count_done(out_dir: str | os.PathLike, names: Sequence[tuple[str, str]]) -> int:
+    """How many of the pairs ``names`` (source, target) already have a record in ``out_dir``."""
+    return sum(is_done(out_dir, a, b) for a, b in names)
+
+
 def distributed_context() -> tuple[int, int]:
     """``(rank, world_size)``: from torch.distributed when initialized, else from the launcher's environment.
 

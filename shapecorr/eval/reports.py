@@ -193,7 +193,8 @@ def write_per_pair_csv(path: str | os.PathLike, records: Sequence[PairRecord]) -
         row = asdict(r)
         writer.writerow({k: "" if row[k] is None else row[k] for k in PER_PAIR_COLUMNS})
     with atomic_open(path) as fh:
-        fh.write(text.getvalue().encode())
+        # surrogateescape: shape names from non-UTF-8 file names are written back as their original bytes
+        fh.write(text.getvalue().encode("utf-8", "surrogateescape"))
     return path
 
 

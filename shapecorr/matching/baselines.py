@@ -141,8 +141,10 @@ class PrecomputedMaps:
     ----------
     maps_dir : path
         Folder of map files.
-    one_based : bool
-        Indices start at 1 (``.map`` / ``.vts``-style files) instead of 0 (shapecorr's ``.txt``).
+    one_based : bool or None
+        Indices start at 1 (``.map`` / ``.vts``-style files) instead of 0 (shapecorr's ``.txt``). None (not
+        said): a file that never uses index 0 is refused with a message asking for ``maps_one_based``
+        (:func:`shapecorr.data.io.read_map`).
     extension : str
         File extension without the dot: ``txt`` / ``map`` / ``vts`` (text, one index per line) or ``npy``
         (an integer array, always zero-based, as written by ``evaluate.py``).
@@ -151,11 +153,11 @@ class PrecomputedMaps:
     needs_ground_truth = False
     required_operators: dict = {}
 
-    def __init__(self, maps_dir: str | os.PathLike, one_based: bool = False, extension: str = "txt"):
+    def __init__(self, maps_dir: str | os.PathLike, one_based: bool | None = None, extension: str = "txt"):
         self.maps_dir = Path(maps_dir)
         if not self.maps_dir.is_dir():
             raise CorrespondenceError("maps folder does not exist", self.maps_dir)
-        self.one_based = bool(one_based)
+        self.one_based = None if one_based is None else bool(one_based)
         self.extension = extension.lstrip(".")
 
     def path(self, name_x: str, name_y: str) -> Path:

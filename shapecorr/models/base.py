@@ -141,7 +141,7 @@ class CorrespondenceModule(pl.LightningModule):
             self._geodesics.move_to_end(key)
             return self._geodesics[key]
         shapes = self.trainer.datamodule.shapes(split)
-        dist = shapes.geodesics(shapes.index(sample.name))
+        dist = shapes.ground_truth_geodesics(shapes.index(sample.name))
         self._geodesics[key] = dist
         while len(self._geodesics) > GEODESIC_LRU_SIZE:
             self._geodesics.popitem(last=False)

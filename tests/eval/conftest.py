@@ -92,6 +92,18 @@ class SphereShapes:
         np.fill_diagonal(d, 0.0)
         return d.astype(np.float32)
 
+    def ground_truth_geodesics(self, i: int, method: str = "heat"):
+        """Exact rows from the ground-truth points (what the evaluation reads), as SourceDistances."""
+        from shapecorr.geometry.geodesics import SourceDistances
+
+        self.geodesic_calls += 1
+        d = self._data[i]
+        sources = np.unique(np.concatenate([d["corres"], d["corres_sym"]]))
+        v = d["verts"]
+        rows = np.arccos(np.clip(v[sources] @ v.T, -1.0, 1.0))
+        rows[np.arange(sources.size), sources] = 0.0
+        return SourceDistances(sources.astype(np.int64), rows.astype(np.float32))
+
     def true_map(self, i: int, j: int) -> np.ndarray:
         """The exact map from shape i to shape j (same base vertex)."""
         inv_i = np.argsort(self._data[i]["perm"])
