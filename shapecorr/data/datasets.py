@@ -529,12 +529,12 @@ class ShapeDataset(Dataset):
         """Compute every missing cache entry (the operators of ``self.operators``, optionally geodesics).
 
         Runs in ``num_workers`` processes (default: the CPU count, at most the number of shapes, and at most
-        as many as fit in the available memory by :func:`shapecorr.data.memory.prepare_bytes`) with a
+        as many as fit in the available memory by :func:`shapecorr.geometry.memory.prepare_bytes`) with a
         progress bar; entries already cached are only read. Safe to interrupt: each entry is written atomically.
         ``geodesic_sources``: ``"ground_truth"`` caches the rows from each shape's ground-truth points
         (:meth:`ground_truth_geodesics`, what the evaluation reads), ``"all"`` the all-pairs matrix.
         """
-        from shapecorr.data.memory import prepare_bytes, workers_for_memory
+        from shapecorr.geometry.memory import prepare_bytes, workers_for_memory
 
         if geodesic_sources not in GEODESIC_SOURCES:
             raise DatasetError(f"geodesic_sources must be one of {GEODESIC_SOURCES}, got {geodesic_sources!r}")

@@ -132,7 +132,7 @@ def geodesic_distances(
     n = v.shape[0]
 
     if all_pairs:
-        from shapecorr.data.memory import check_fits  # local: shapecorr.data imports this module
+        from shapecorr.geometry.memory import check_fits
 
         # the float64 matrix and the transposed copy of the symmetrization
         check_fits(2 * 8 * n * n, f"the all-pairs geodesic matrix of a {n}-vertex mesh",

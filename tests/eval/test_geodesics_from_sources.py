@@ -12,7 +12,7 @@ import trimesh
 
 from shapecorr.data.cache import ShapeCache
 from shapecorr.data.datasets import ShapeSample
-from shapecorr.data.memory import prepare_bytes, workers_for_memory
+from shapecorr.geometry.memory import prepare_bytes, workers_for_memory
 from shapecorr.data.operators import geodesics_from_cached
 from shapecorr.data.shape import make_shape
 from shapecorr.errors import ConfigError
@@ -159,7 +159,7 @@ def test_prepare_estimate_is_linear_in_sources_not_quadratic():
 
 
 def test_all_pairs_matrix_of_a_large_mesh_stops_before_allocating(monkeypatch):
-    import shapecorr.data.memory as memory
+    import shapecorr.geometry.memory as memory
 
     monkeypatch.setattr(memory, "available_memory_bytes", lambda: 1024**2)  # 1 MiB
     v, f = sphere(3)  # 642 vertices: 6.6 MB for the all-pairs matrix
