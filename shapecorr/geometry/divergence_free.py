@@ -154,6 +154,14 @@ def _potential_coefficients(coeffs: torch.Tensor, n_modes: int, convention: str)
     return (coeffs * scales).reshape(n_modes, n_modes, n_modes, 3).permute(3, 0, 1, 2)
 
 
+def _prepare(points: torch.Tensor, coeffs: torch.Tensor, convention: str) -> tuple[int, torch.Tensor]:
+    """Check the inputs once; K and the potential coefficients ``(3, K, K, K)`` in the dtype of ``points``."""
+    _check_convention(convention)
+    _check_points(points)
+    k = _check_coeffs(coeffs)
+    return k, _potential_coefficients(coeffs.to(points.dtype), k, convention)
+
+
 def _contract(fa: torch.Tensor, fb: torch.Tensor, fc: torch.Tensor, pot: torch.Tensor) -> torch.Tensor:
     """``sum_abc fa[n,a] fb[n,b] fc[n,c] pot[d,a,b,c]`` -> (n, 3), contracting one axis at a time."""
     t = torch.einsum("nc,dabc->ndab", fc, pot)
@@ -225,10 +233,8 @@ def velocity(
     (n, 3) float
         Differentiable in ``points`` and ``coeffs``.
     """
-    _check_convention(convention)
-    _check_points(points)
-    k = _check_coeffs(coeffs)
-    return _field(points, _potential_coefficients(coeffs.to(points.dtype), k, convention), k, chunk_size)
+    k, pot = _prepare(points, coeffs, convention)
+    return _field(points, pot, k, chunk_size)
 
 
 def _field(points: torch.Tensor, pot: torch.Tensor, k: int, chunk_size: int) -> torch.Tensor:
@@ -259,10 +265,7 @@ def velocity_jacobian(
     (n, 3, 3) float
         Trace-free (the field is divergence-free), differentiable in ``points`` and ``coeffs``.
     """
-    _check_convention(convention)
-    _check_points(points)
-    k = _check_coeffs(coeffs)
-    pot = _potential_coefficients(coeffs.to(points.dtype), k, convention)
+    k, pot = _prepare(points, coeffs, convention)
     blocks = []
     for s in _chunks(points.shape[0], chunk_size):
         sin, dcos, d2 = _factors(points[s], k)
@@ -430,10 +433,8 @@ def flow_step(points: torch.Tensor, coeffs: torch.Tensor, h: float, rule: str = 
     (n, 3) float
     """
     _check_rule(rule, 1)
-    _check_convention(convention)
-    _check_points(points)
-    k = _check_coeffs(coeffs)
-    return _step(points, _potential_coefficients(coeffs.to(points.dtype), k, convention), k, h, rule, chunk_size)
+    k, pot = _prepare(points, coeffs, convention)
+    return _step(points, pot, k, h, rule, chunk_size)
 
 
 def _step(points: torch.Tensor, pot: torch.Tensor, k: int, h: float, rule: str, chunk_size: int) -> torch.Tensor:
@@ -483,10 +484,7 @@ def integrate_flow(
         The flow produced NaN/Inf (coefficients far too large).
     """
     _check_rule(rule, n_steps)
-    _check_convention(convention)
-    _check_points(points)
-    k = _check_coeffs(coeffs)
-    pot = _potential_coefficients(coeffs.to(points.dtype), k, convention)
+    k, pot = _prepare(points, coeffs, convention)
     h = float(t_end) / int(n_steps)
     path = [points]
     x = points
@@ -531,10 +529,7 @@ def flow_frames(
         In the order of ``times``.
     """
     _check_rule(rule, n_steps)
-    _check_convention(convention)
-    _check_points(points)
-    k = _check_coeffs(coeffs)
-    pot = _potential_coefficients(coeffs.to(points.dtype), k, convention)
+    k, pot = _prepare(points, coeffs, convention)
     values = [float(t) for t in (times.reshape(-1).tolist() if isinstance(times, torch.Tensor) else times)]
     if not all(math.isfinite(t) for t in values):
         raise ConfigError(f"frame times must be finite, got {values}")
