@@ -6,7 +6,8 @@ coefficients are optimized coarse to fine (more modes and more samples per level
 
 1. **correspondences**: nearest neighbours in the product space ``[coordinates, w_n normals, w_s SHOT]``
    between the deformed samples of x and y, in both directions (samples of x -> all vertices of y, samples of
-   y -> the deformed samples of x), every ``corr_every`` iterations;
+   y -> the deformed samples of x, so that only the samples are flowed with gradients), every ``corr_every``
+   iterations;
 2. **field updates**: Adam steps (torch autograd through the flow) on
 
    ``E = E_align + lambda_reg E_reg``, with
@@ -297,16 +298,12 @@ class DivFreeMatcher:
                         moved = self._flow(bx, coeffs.detach())
                         emb_x_all = self._embed(moved, vertex_normals(moved, fx), dx, level)
                         match_xy, _ = self._nn(emb_x_all[sx], emb_y_all)  # samples of x -> vertices of y
-                        match_yx, _ = self._nn(emb_y_s, emb_x_all)  # samples of y -> vertices of x
+                        match_yx, _ = self._nn(emb_y_s, emb_x_all[sx])  # samples of y -> samples of x
                     target_xy, target_yx = by[match_xy], by[sy]
-                    # flowed with gradients: the samples of x (first m rows) and the matches of y's samples
-                    points = torch.cat((xs, bx[match_yx]), dim=0)
                 optimizer.zero_grad(set_to_none=True)
-                path = self._flow(points, coeffs, return_path=True)  # (N + 1, 2 m, 3)
-                m = xs.shape[0]
+                path = self._flow(xs, coeffs, return_path=True)  # (N + 1, m, 3)
                 end = path[-1]
-                e_align = 0.5 * (self._huber_mse(end[:m] - target_xy) + self._huber_mse(end[m:] - target_yx))
-                path = path[:, :m]
+                e_align = 0.5 * (self._huber_mse(end - target_xy) + self._huber_mse(end[match_yx] - target_yx))
                 e_reg = arap_energy(path[:1].expand_as(path[1:]), path[1:], edges, counts, mode="average").sum()
                 e_reg = e_reg / (xs.shape[0] * self.n_steps * ARAP_NORMALIZATION / self.knn)
                 loss = e_align + self.lambda_reg * e_reg
