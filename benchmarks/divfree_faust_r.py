@@ -1,7 +1,7 @@
 """Benchmark: the divergence-free matcher (model=divfree) on an evenly spaced subset of the FAUST_r test pairs.
 
     OMP_NUM_THREADS=1 python benchmarks/divfree_faust_r.py --faust-r /path/to/FAUST_r [--max-pairs 4] \
-        [--override model.iterations=[25,25,50] ...]
+        [--override model.iterations=[25,25,50] ...] [--variant 'fast=model.samples=[500,1000,1000]']
 
 Runs ``evaluate.py`` in process (same configs as the command line) on the same ``--max-pairs`` evenly spaced
 ordered pairs of tr_reg_080..099 with
@@ -61,6 +61,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--max-pairs", type=int, default=4, help="evenly spaced subset of the 380 test pairs")
     parser.add_argument("--work-dir", default=str(REPO / "outputs" / "bench_divfree"), help="evaluation outputs")
     parser.add_argument("--override", action="append", default=[], help="extra overrides of the divfree run")
+    parser.add_argument("--variant", action="append", default=[],
+                        help="another divfree run on the same pairs: NAME=OVERRIDE[;OVERRIDE...], e.g. "
+                             "'fast=model.samples=[500,1000,1000]'")
     parser.add_argument("--skip-baselines", action="store_true", help="run divfree only")
     parser.add_argument("--output", default=str(RESULT), help="results JSON")
     args = parser.parse_args(argv)
@@ -73,6 +76,9 @@ def main(argv: list[str] | None = None) -> dict:
         ("descriptor_nn_wks", ["model=descriptor_nn", "model.descriptor=wks"]),
     ]
     todo.append(("divfree", ["model=divfree", *args.override]))
+    for spec in args.variant:
+        name, _, overrides = spec.partition("=")
+        todo.append((f"divfree_{name}", ["model=divfree", *[o for o in overrides.split(";") if o]]))
     for name, overrides in todo:
         t0 = time.perf_counter()
         metrics = _run(args.faust_r, work / name, args.max_pairs, *overrides)
