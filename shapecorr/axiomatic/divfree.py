@@ -29,7 +29,6 @@ The matcher follows the protocol of :mod:`shapecorr.matching.result` (``match`` 
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 

@@ -310,7 +310,7 @@ def basis_fields(points: torch.Tensor, n_modes: int = PUBLISHED_N_MODES, convent
     sin, dcos, _ = _factors(points, k)
     sx, sy, sz = sin[:, 0], sin[:, 1], sin[:, 2]
     cx, cy, cz = dcos[:, 0], dcos[:, 1], dcos[:, 2]
-    outer = lambda fa, fb, fc: fa[:, :, None, None] * fb[:, None, :, None] * fc[:, None, None, :]  # noqa: E731
+    outer = lambda fa, fb, fc: fa[:, :, None, None] * fb[:, None, :, None] * fc[:, None, None, :]
     grad = torch.stack((outer(cx, sy, sz), outer(sx, cy, sz), outer(sx, sy, cz)), dim=-1)  # (n, K, K, K, 3_j)
     grad = grad.reshape(points.shape[0], k**3, 3)
     # grad(psi) x e_d for d = 0, 1, 2: (n, K^3, 3_d, 3_i)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from omegaconf import OmegaConf
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 from scipy.spatial import cKDTree
 
 from shapecorr.axiomatic.divfree import DivFreeMatcher, knn_graph_edges
@@ -20,8 +20,8 @@ from shapecorr.geometry.shot_descriptor import shot
 
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "model" / "divfree.yaml"
 # A short schedule (two levels, few samples and steps) so that each fit takes a few seconds.
-FAST = dict(modes=(2, 4), samples=150, iterations=(25, 25), lr=(0.01, 0.005), descriptor_weight=(0.2, 0.1),
-            n_steps=8, corr_every=5)
+FAST = {"modes": (2, 4), "samples": 150, "iterations": (25, 25), "lr": (0.01, 0.005), "descriptor_weight": (0.2, 0.1),
+            "n_steps": 8, "corr_every": 5}
 
 
 def _blob(n_verts: int):
