@@ -1,7 +1,7 @@
 """Benchmark (preliminary): Smooth Shells on a few FAUST_r test pairs, one thread.
 
     SHAPECORR_FAUST_R=/path/to/FAUST_r python benchmarks/smooth_shells_faust_r.py [--pairs 3] [--threads 1]
-        [--num-mcmc 100] [--device cpu] [--out benchmarks/results/smooth_shells_faust_r.json]
+        [--num-mcmc 100] [--no-rigid] [--device cpu] [--out benchmarks/results/smooth_shells_faust_r.json]
 
 For each of the first ``--pairs`` test pairs (``test_pairs.txt``): the shapes are normalized as the data
 pipeline does (area-weighted centroid, area (2/3)^2), their 509 eigenpairs and SHOT come from the project's
@@ -81,6 +81,7 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--num-mcmc", type=int, default=100)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--no-rigid", action="store_true", help="skip the rigid stage (FAUST_r is pre-aligned)")
     parser.add_argument("--out", default=str(DEFAULT_OUT))
     args = parser.parse_args(argv)
     if not args.faust_r:
@@ -93,7 +94,7 @@ def main(argv=None) -> int:
     root = Path(args.faust_r)
     pairs = [line.split() for line in (root / "test_pairs.txt").read_text().splitlines() if line.strip()]
     pairs = pairs[: args.pairs]
-    config = SmoothShellsConfig(num_mcmc=args.num_mcmc)
+    config = SmoothShellsConfig(num_mcmc=args.num_mcmc, no_rigid=args.no_rigid)
     cache = ShapeCache()
     device = torch.device(args.device)
     records = []

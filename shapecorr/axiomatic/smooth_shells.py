@@ -114,6 +114,10 @@ class SmoothShellsConfig:
         Rigid surrogate runs (0.11, 0.1, 1, 5 rounds per layer).
     rigid_rotations : tuple of int
         Candidate counts: 2 rotations about the 3rd principal axis, then 4 about the 1st.
+    rigid_joint : bool
+        Score all combinations of the two candidate sets together (2 x 4 = 8 surrogate runs) instead of the
+        original's greedy sequence (2 + 4), which misses a half turn about the 2nd principal axis when the
+        first set's choice is wrong (project option, docs/smooth_shells.md §6; default: the original).
     icp_iterations : int
         Axis-ICP iterations (5 x 10).
     mcmc_batch : int
@@ -145,6 +149,7 @@ class SmoothShellsConfig:
     rigid_lambda_lap: float = 1.0
     rigid_num_sub: int = 5
     rigid_rotations: tuple[int, ...] = (2, 4)
+    rigid_joint: bool = False
     icp_iterations: int = 50
     mcmc_batch: int = 16
     seed: int = 0
@@ -164,6 +169,8 @@ class SmoothShellsConfig:
         if self.num_mcmc < 0 or self.problem_size_init < 2 or self.rigid_num_sub < 1 or self.mcmc_batch < 1:
             raise ConfigError("smooth_shells: num_mcmc >= 0, problem_size_init >= 2, rigid_num_sub >= 1 and "
                               "mcmc_batch >= 1 are required")
+        if len(self.rigid_rotations) != 2 or min(self.rigid_rotations) < 1:
+            raise ConfigError(f"smooth_shells.rigid_rotations must be two counts >= 1, got {self.rigid_rotations}")
         if not self.mcmc_lambda_laps or min(self.mcmc_lambda_laps) < 0:
             raise ConfigError(f"smooth_shells.mcmc_lambda_laps must be non-negative values, got {self.mcmc_lambda_laps}")
         if self.nn_backend not in ("auto", "kdtree", "brute"):
@@ -894,33 +901,47 @@ def rigid_alignment(x: ShellsShape, y: ShellsShape, config: SmoothShellsConfig =
     w_init = sigmoid_shell_weights(K_START, dtype=dtype, device=dev)
     c_init = _functional_map(pair, replace(run, lambda_lap=torch.tensor([0.0])), w_init.shape[0], batch=1)
     normals_y_full = _batched_normals(_shell(pair.phi_y, sy.coeffs[None], config.k_max), sy.faces)[0]
-    all_scores = []
-    for count, axis_index in zip(config.rigid_rotations, (2, 0)):
-        aligned = apply(rot, trans)
-        centred = aligned - aligned.mean(0)
-        _, _, vh = torch.linalg.svd(centred, full_matrices=False)  # principal axes, by decreasing variance
-        axis = vh[min(axis_index, 2)]
-        cands_r, cands_t = [], []
-        for i in range(1, count + 1):  # i = count is the current pose
-            turn = _axis_angle(axis, 2.0 * math.pi * i / count)
-            r_c, t_c = turn @ rot, turn @ trans
-            moved = verts0 @ r_c.transpose(0, 1) + t_c
-            t_c = t_c + _area_centroid(sy.verts.to(torch.float64), m_y) - _area_centroid(moved, m_x)
-            cands_r.append(r_c)
-            cands_t.append(t_c)
-        verts_b = torch.stack([apply(r, t) for r, t in zip(cands_r, cands_t)]).to(dtype)
+    y_centroid = _area_centroid(sy.verts.to(torch.float64), m_y)
+
+    def principal_axes(r, t):
+        aligned = apply(r, t)
+        return torch.linalg.svd(aligned - aligned.mean(0), full_matrices=False)[2]  # rows: decreasing variance
+
+    def evaluate(turns, r, t):
+        """Score the poses ``turn @ (r, t)`` (re-centred) by a surrogate run each; returns (scores, poses)."""
+        poses = []
+        for turn in turns:
+            r_c, t_c = turn @ r, turn @ t
+            t_c = t_c + y_centroid - _area_centroid(verts0 @ r_c.transpose(0, 1) + t_c, m_x)
+            poses.append((r_c, t_c))
+        verts_b = torch.stack([apply(r_c, t_c) for r_c, t_c in poses]).to(dtype)
         coeffs_b = torch.stack([spectral_coefficients(sx.evecs, sx.mass, v) for v in verts_b])
         b = verts_b.shape[0]
-        st = _State(verts_x=verts_b, coeffs_x=coeffs_b,
-                    tau=torch.zeros(b, K_START, 3, dtype=torch.float64, device=dev),
+        st = _State(verts_x=verts_b, coeffs_x=coeffs_b, tau=torch.zeros(b, K_START, 3, dtype=torch.float64, device=dev),
                     fmap=c_init.expand(b, -1, -1), k_prev=K_START, w_prev=w_init)
         run_b = replace(run, lambda_lap=torch.full((b,), config.rigid_lambda_lap))
         _layered(pair, run_b, st, range(RIGID_K_MIN, K_START + 1))
         full = _reattach_detail(pair, verts_b, coeffs_b, st.tau, K_START)
-        scores = _score(pair, run_b, st, full, config.rigid_fac_feat, config.rigid_normal_damping, normals_y_full)
-        best = int(torch.argmin(scores))
-        rot, trans = cands_r[best], cands_t[best]
+        return _score(pair, run_b, st, full, config.rigid_fac_feat, config.rigid_normal_damping, normals_y_full), poses
+
+    all_scores = []
+    count3, count1 = config.rigid_rotations
+    if config.rigid_joint:
+        # every combination of the two sets at once (the 3rd and 1st principal axes of the current pose)
+        axes = principal_axes(rot, trans)
+        turns = [_axis_angle(axes[0], 2.0 * math.pi * j / count1) @ _axis_angle(axes[2], 2.0 * math.pi * i / count3)
+                 for i in range(1, count3 + 1) for j in range(1, count1 + 1)]
+        scores, poses = evaluate(turns, rot, trans)
+        rot, trans = poses[int(torch.argmin(scores))]
         all_scores.append(scores.cpu())
+    else:
+        # the original: first the turns about the 3rd principal axis, then about the (new) 1st one
+        for count, axis_index in ((count3, 2), (count1, 0)):
+            axis = principal_axes(rot, trans)[axis_index]
+            turns = [_axis_angle(axis, 2.0 * math.pi * i / count) for i in range(1, count + 1)]  # last: current
+            scores, poses = evaluate(turns, rot, trans)
+            rot, trans = poses[int(torch.argmin(scores))]
+            all_scores.append(scores.cpu())
     return rot.to(dtype), trans.to(dtype), all_scores
 
 
