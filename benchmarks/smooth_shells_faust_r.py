@@ -22,10 +22,9 @@ import sys
 import time
 from pathlib import Path
 
+import bench_common
 import numpy as np
 import torch
-
-import bench_common
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "smooth_shells_faust_r.json"
@@ -43,7 +42,11 @@ def _peak_mb() -> float:
 def _load(root: Path, name: str, cache, config, device):
     from shapecorr.axiomatic.smooth_shells import shells_shape
     from shapecorr.data.io import load_shape, read_vts
-    from shapecorr.data.operators import OperatorConfig, descriptor_cached, eigenbasis_cached
+    from shapecorr.data.operators import (
+        OperatorConfig,
+        descriptor_cached,
+        eigenbasis_cached,
+    )
 
     shape = load_shape(root / "off" / f"{name}.off")
     v, f = shape.verts.numpy().astype(np.float64), shape.faces.numpy()

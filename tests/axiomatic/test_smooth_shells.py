@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import replace
 from types import SimpleNamespace
@@ -56,7 +57,7 @@ def _blob(points: np.ndarray) -> np.ndarray:
 
 def _shape(verts, faces, name, config=SMALL):
     evals, evecs, mass = eigenbasis(verts, faces, config.num_eigs)
-    f32 = lambda a: torch.tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+    f32 = lambda a: torch.tensor(np.asarray(a), dtype=torch.float32)
     return shells_shape(f32(verts), torch.tensor(faces), f32(evals), f32(evecs), f32(mass),
                         shot=f32(shot(verts, faces)), name=name)
 
@@ -73,7 +74,7 @@ def base():
     verts = verts * np.sqrt(0.44 / triangle_areas(verts, faces).sum())
     verts = verts - verts.mean(0)
     edge = float(np.linalg.norm(verts[faces[:, 0]] - verts[faces[:, 1]], axis=1).mean())
-    return dict(verts=verts, faces=faces, x=_shape(verts, faces, "blob"), edge=edge)
+    return {"verts": verts, "faces": faces, "x": _shape(verts, faces, "blob"), "edge": edge}
 
 
 def _permuted_copy(base, rotation, shift, rng, name):
@@ -81,7 +82,7 @@ def _permuted_copy(base, rotation, shift, rng, name):
     perm = rng.permutation(len(base["verts"]))  # vertex j of Y is vertex perm[j] of X
     gt = np.argsort(perm)
     verts_y = (base["verts"] @ rotation.T + shift)[perm]
-    return dict(y=_shape(verts_y, gt[base["faces"]], name), gt=gt, perm=perm, verts_y=verts_y)
+    return {"y": _shape(verts_y, gt[base["faces"]], name), "gt": gt, "perm": perm, "verts_y": verts_y}
 
 
 @pytest.fixture(scope="module")
@@ -98,7 +99,7 @@ def test_k_schedule_is_the_published_quartic_one():
     assert len(ks) == 51 and ks[0] == 20 and ks[-1] == 500
     assert list(ks[:12]) == [20, 21, 21, 22, 22, 23, 24, 24, 25, 27, 28, 29]
     assert list(ks[-5:]) == [388, 414, 441, 470, 500]
-    assert all(b >= a for a, b in zip(ks, ks[1:]))
+    assert all(b >= a for a, b in itertools.pairwise(ks))
     assert SmoothShellsConfig().num_eigs == 509 and SmoothShellsConfig().k_array == ks
 
 
