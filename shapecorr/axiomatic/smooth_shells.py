@@ -405,7 +405,7 @@ def _batched_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 # batched building blocks
 
 
-def _nearest(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+def _nearest(queries: torch.Tensor, points: torch.Tensor, backend: str = "auto") -> torch.Tensor:
     """Exact Euclidean nearest neighbours in batches: for ``queries (B, q, d)``, ``points (B, p, d)`` the
     index ``(B, q)`` of the nearest point.
 
@@ -417,12 +417,14 @@ def _nearest(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """
     b, q, _ = queries.shape
     p = points.shape[1]
-    if queries.device.type == "cpu":
+    if backend == "auto":
+        backend = "kdtree" if queries.device.type == "cpu" else "brute"
+    if backend == "kdtree":
         out = np.empty((b, q), dtype=np.int64)
         for i in range(b):
             pts = points[i].detach().to(torch.float64).numpy()
             out[i] = cKDTree(pts).query(queries[i].detach().to(torch.float64).numpy(), k=1)[1]
-        return torch.from_numpy(out)
+        return torch.from_numpy(out).to(queries.device)
     chunk = max(1, NN_BLOCK_ENTRIES // max(1, b * p))
     out = torch.empty(b, q, dtype=torch.int64, device=queries.device)
     pp = points.square().sum(-1)[:, None, :]

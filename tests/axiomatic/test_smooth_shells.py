@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 from shapecorr.axiomatic.smooth_shells import (
     SmoothShells,
     SmoothShellsConfig,
+    _nearest,
     basis_features,
     k_schedule,
     refine,
@@ -217,3 +218,12 @@ def test_matcher_gives_maps_and_frames(base, rigid_pair):
     assert torch.equal(out.p2p, rigid_pair["result"].map_x_to_y)
     with pytest.raises(ConfigError):
         SmoothShells(k_maxx=3)
+
+
+def test_batched_nearest_neighbours_backends_agree():
+    # the brute-force branch is what runs on the GPU; both must be exact
+    g = torch.Generator().manual_seed(0)
+    queries, points = torch.randn(3, 50, 7, generator=g), torch.randn(3, 80, 7, generator=g)
+    naive = torch.cdist(queries.double(), points.double()).argmin(-1)
+    assert torch.equal(_nearest(queries, points, backend="kdtree"), naive)
+    assert torch.equal(_nearest(queries, points, backend="brute"), naive)
