@@ -136,8 +136,8 @@ class DivFreeMatcher:
         Box margin of the pair normalization.
     convention : {"published", "original_code"}
         Basis convention.
-    times : sequence of float
-        Frames of :meth:`match`.
+    interp_times : sequence of float
+        Frames of :meth:`match` (the project's one name for frame times, as ``evaluate.py interp_times``).
     chunk_size : int
         Vertices per chunk when the flow is replayed at full resolution.
     seed : int
@@ -166,7 +166,7 @@ class DivFreeMatcher:
         corr_every: int = 10,
         margin: float = df.BOX_MARGIN,
         convention: str = "published",
-        times=DIVFREE_TIMES,
+        interp_times=DIVFREE_TIMES,
         chunk_size: int = df.DEFAULT_CHUNK_SIZE,
         seed: int = 0,
         nn_backend: str = "auto",
@@ -203,13 +203,13 @@ class DivFreeMatcher:
         self.corr_every = int(corr_every)
         self.margin = float(margin)
         self.convention = convention
-        self.times = tuple(float(t) for t in times)
+        self.interp_times = tuple(float(t) for t in interp_times)
         self.chunk_size = int(chunk_size)
         self.seed = int(seed)
         self.nn_backend = nn_backend
         self.nn_workers = int(nn_workers)
         uses_descriptor = any(level.descriptor_weight > 0 for level in self.levels)
-        self.required_operators = {"descriptors": [DESCRIPTOR]} if uses_descriptor else {}
+        self.required_operators = {DESCRIPTOR: {}} if uses_descriptor else {}
 
     # ------------------------------------------------------------------------------------------------------
     # pieces
@@ -359,5 +359,5 @@ class DivFreeMatcher:
                            times=times.to(frames.device), extras=extras)
 
     def match(self, x, y) -> MatchResult:
-        """:meth:`interpolate` at the default frames ``times``."""
-        return self.interpolate(x, y, torch.tensor(self.times))
+        """:meth:`interpolate` at the default frames ``interp_times``."""
+        return self.interpolate(x, y, torch.tensor(self.interp_times))

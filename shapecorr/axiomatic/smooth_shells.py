@@ -1190,29 +1190,30 @@ class SmoothShells:
 
     Parameters
     ----------
-    times : sequence of float
-        Frames of :meth:`match`.
+    interp_times : sequence of float
+        Frames of :meth:`match` (the project's one name for frame times, as ``evaluate.py interp_times``).
     **settings
         :class:`SmoothShellsConfig` fields.
     """
 
     needs_ground_truth = False
 
-    def __init__(self, times=(0.0, 0.25, 0.5, 0.75, 1.0), **settings):
+    def __init__(self, interp_times=(0.0, 0.25, 0.5, 0.75, 1.0), **settings):
         try:
             self.config = SmoothShellsConfig(**settings)
         except TypeError as err:
             raise ConfigError(f"smooth_shells: {err}") from None
-        values = [float(t) for t in times]
+        values = [float(t) for t in interp_times]
         if not values or not all(np.isfinite(values)):
-            raise ConfigError(f"smooth_shells.times must be finite numbers, got {values}")
-        self.times = tuple(values)
+            raise ConfigError(f"smooth_shells.interp_times must be finite numbers, got {values}")
+        self.interp_times = tuple(values)
 
     @property
     def required_operators(self) -> dict:
-        out = {"n_eig": self.config.num_eigs}
+        """Operator request: the eigenbasis of ``config.num_eigs`` pairs, and SHOT when features are used."""
+        out = {"eigenbasis": {"k": self.config.num_eigs}}
         if self.config.lambda_feat > 0:
-            out["descriptors"] = ["shot"]
+            out["shot"] = {}
         return out
 
     def run(self, x, y) -> SmoothShellsResult:
@@ -1233,4 +1234,4 @@ class SmoothShells:
 
     def match(self, x, y) -> MatchResult:
         """:meth:`interpolate` at the default ``times``."""
-        return self.interpolate(x, y, torch.tensor(self.times))
+        return self.interpolate(x, y, torch.tensor(self.interp_times))

@@ -123,7 +123,7 @@ def test_config_has_published_defaults():
     finest = matcher.levels[-1]
     assert (finest.n_modes, finest.n_samples, finest.iterations) == (8, 2000, 100)
     assert (matcher.n_steps, matcher.lambda_reg, matcher.knn, matcher.margin) == (16, 20.0, 5, 0.05)
-    assert matcher.required_operators == {"descriptors": ["shot"]}
+    assert matcher.required_operators == {"shot": {}}
 
 
 def test_bad_input(rigid_pair):

@@ -202,8 +202,8 @@ def test_refine_improves_a_noisy_map(base, rigid_pair):
 def test_matcher_gives_maps_and_frames(base, rigid_pair):
     settings = {k: getattr(SMALL_JOINT, k) for k in ("k_max", "k_array_length", "num_mcmc", "problem_size_init",
                                                       "mcmc_batch", "rigid_joint")}
-    matcher = SmoothShells(times=(0.0, 0.5, 1.0), **settings)
-    assert matcher.required_operators == {"n_eig": SMALL.num_eigs, "descriptors": ["shot"]}
+    matcher = SmoothShells(interp_times=(0.0, 0.5, 1.0), **settings)
+    assert matcher.required_operators == {"eigenbasis": {"k": SMALL.num_eigs}, "shot": {}}
 
     def sample(s):
         sp = s.spectral
