@@ -335,7 +335,12 @@ def basis_features(x: ShellsShape, y: ShellsShape) -> tuple[torch.Tensor, torch.
         cy = spectral_coefficients(y.spectral.evecs[:, :k], y.spectral.mass, desc_y).to(torch.float64)
         norm = torch.sqrt(cx.square().sum() + cy.square().sum())
         if not norm > 0:
-            raise NumericalError(f"basis features of {x.name}, {y.name}: a descriptor block is zero")
+            which = "SHOT" if desc_x is x.shot else "HKS"
+            hint = (" (SHOT support radius too small for this mesh resolution? raise "
+                    "data.operators.params.shot.radius_factor, e.g. to 0.25 on a few hundred vertices)"
+                    if which == "SHOT" else "")
+            raise NumericalError(f"basis features of {x.name}, {y.name}: the {which} descriptor is zero on both "
+                                 f"shapes{hint}; or set model.lambda_feat=0 to match without features")
         blocks_x.append(cx / norm)
         blocks_y.append(cy / norm)
     fx, fy = torch.cat(blocks_x, 1), torch.cat(blocks_y, 1)
