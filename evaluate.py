@@ -1,7 +1,7 @@
 """Evaluate a matcher (or precomputed maps) on ordered pairs of a dataset; see configs/evaluate.yaml.
 
-    python evaluate.py model=descriptor_nn data=faust_r data.root=/path/to/FAUST_r pairs=test output_dir=OUT
-    python evaluate.py maps_dir=DIR data=folder data.root=DIR output_dir=OUT
+python evaluate.py model=descriptor_nn data=faust_r data.root=/path/to/FAUST_r pairs=test output_dir=OUT
+python evaluate.py maps_dir=DIR data=folder data.root=DIR output_dir=OUT
 """
 
 import hydra

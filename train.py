@@ -1,8 +1,8 @@
 """Train a learned correspondence model (default: Deep Shells on the embedded synthetic data); see configs/train.yaml.
 
-    python train.py
-    python train.py experiment=deep_shells_faust_r data.root=/path/to/FAUST_r trainer=gpu
-    python train.py ckpt_path=outputs/train/<run>/checkpoints/last.ckpt
+python train.py
+python train.py experiment=deep_shells_faust_r data.root=/path/to/FAUST_r trainer=gpu
+python train.py ckpt_path=outputs/train/<run>/checkpoints/last.ckpt
 """
 
 import hydra

@@ -411,8 +411,9 @@ def _batched_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 
 
 def _nearest(queries: torch.Tensor, points: torch.Tensor, backend: str = "auto") -> torch.Tensor:
-    """Exact Euclidean nearest neighbours in batches: for ``queries (B, q, d)``, ``points (B, p, d)`` the
-    index ``(B, q)`` of the nearest point.
+    """Exact Euclidean nearest neighbours in batches.
+
+    For ``queries (B, q, d)``, ``points (B, p, d)``: the index ``(B, q)`` of the nearest point.
 
     Written here because :mod:`shapecorr.matching.nearest_neighbors` has no batch dimension; the random search
     and the rigid surrogate runs solve many small independent problems at once. On the GPU: one distance

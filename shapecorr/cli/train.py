@@ -59,8 +59,10 @@ class FinalLastCheckpoint(ModelCheckpoint):
 
     @property
     def state_key(self) -> str:
-        """The key of a plain ModelCheckpoint with the same options, so that checkpoints written before this
-        subclass existed (and by it) restore the checkpoint state on resume."""
+        """The key of a plain ModelCheckpoint with the same options.
+
+        So checkpoints written before this subclass existed (and by it) restore the checkpoint state on resume.
+        """
         return ModelCheckpoint.__qualname__ + super().state_key[len(type(self).__qualname__):]
 
     def on_train_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:

@@ -85,8 +85,9 @@ class ResumableShuffleSampler(Sampler[int]):
 
 
 class KeyedDistributedSampler(DistributedSampler):
-    """A rank's shard of the shuffled indices (Lightning's ``DistributedSampler`` order), as
-    :class:`~shapecorr.data.augmentation.SampleKey` ``(epoch, position in the shard, index)``.
+    """A rank's shard of the shuffled indices (Lightning's ``DistributedSampler`` order).
+
+    Items are :class:`~shapecorr.data.augmentation.SampleKey` ``(epoch, position in the shard, index)``.
 
     Used for datasets whose items depend on the epoch and the step (augmented training pairs) under several
     ranks; being a ``DistributedSampler``, Lightning keeps it (and calls its ``set_epoch``) instead of replacing

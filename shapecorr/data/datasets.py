@@ -61,8 +61,10 @@ _ROOTS_WITHOUT_SPLITS: set[str] = set()
 
 
 def _tensor(value) -> torch.Tensor:
-    """A cached array as a tensor: floats float32, integers int64, ``scipy.sparse`` as a coalesced sparse COO
-    float32 tensor; tensors pass through."""
+    """A cached array as a tensor; tensors pass through.
+
+    Floats become float32, integers int64, ``scipy.sparse`` a coalesced sparse COO float32 tensor.
+    """
     if isinstance(value, torch.Tensor):
         return value
     if sp.issparse(value):
@@ -161,8 +163,11 @@ class ShapeSample:
 
     @property
     def features(self) -> dict[str, torch.Tensor]:
-        """Per-vertex descriptors ``(n, c)`` by name: every operator ``name`` with an array ``name`` that is not
-        registered as a non-descriptor (e.g. ``geodesics``)."""
+        """Per-vertex descriptors ``(n, c)`` by name.
+
+        Every operator ``name`` with an array ``name`` that is not registered as a non-descriptor (e.g.
+        ``geodesics``).
+        """
         out = {}
         for name, arrays in self.operators.items():
             op = REGISTRY.get(name)
@@ -356,9 +361,12 @@ def sample_with_operators(
 
 def operators_with_fallback(cache: ShapeCache, shape: Shape, operators: OperatorConfig,
                             fallback: bool = True) -> dict[str, dict]:
-    """:func:`compute_operators`, using the robust Laplacian for this shape where the cotangent one has
-    infinite weights (zero-area faces) when ``fallback`` (``data.validation.laplacian_fallback``), with a
-    warning naming the file; otherwise the error names the file and both options."""
+    """:func:`compute_operators`, with the robust Laplacian as an optional fallback.
+
+    The robust Laplacian is used for this shape where the cotangent one has infinite weights (zero-area faces)
+    when ``fallback`` (``data.validation.laplacian_fallback``), with a warning naming the file; otherwise the
+    error names the file and both options.
+    """
     from shapecorr.data.validation import MeshWarning
 
     verts, faces = shape.verts.numpy(), shape.faces.numpy()
@@ -504,8 +512,11 @@ class ShapeDataset(Dataset):
         return geodesics_cached(self.cache, shape.verts.numpy(), shape.faces.numpy(), method=method)
 
     def geodesic_sources(self, i: int) -> np.ndarray:
-        """Sorted unique vertices of shape ``i`` that the evaluation needs geodesic rows from: its ground-truth
-        points (``.vts`` and ``.sym.vts``), or every vertex when it has none (identity ground truth)."""
+        """Sorted unique vertices of shape ``i`` that the evaluation needs geodesic rows from.
+
+        Its ground-truth points (``.vts`` and ``.sym.vts``), or every vertex when it has none (identity ground
+        truth).
+        """
         shape = self.load_shape(i)
         refs = [self._read_corres(p, shape) for p in (self._corres_paths[shape.name], self._sym_paths[shape.name])]
         refs = [r.numpy() for r in refs if r is not None]

@@ -277,8 +277,11 @@ def island_points(sample, refs) -> np.ndarray:
 
 
 def _onto_main_component(y, p2p: np.ndarray) -> np.ndarray:
-    """``p2p`` with every vertex mapped onto a small island of y moved to the nearest (Euclidean) vertex of
-    y's largest component, so that its error is finite and large rather than infinite."""
+    """``p2p`` with the vertices mapped onto small islands of y moved to y's largest component.
+
+    Every vertex mapped onto a small island of y goes to the nearest (Euclidean) vertex of y's largest
+    component, so that its error is finite and large rather than infinite.
+    """
     main = _main_component(y)
     if main is None:
         return p2p

@@ -140,8 +140,11 @@ def _check_coeffs(coeffs: torch.Tensor) -> int:
 
 
 def _factors(points: torch.Tensor, n_modes: int, second: bool = True):
-    """Per coordinate m and mode a: ``sin(a pi x_m)``, ``a cos(a pi x_m)`` and (``second``) ``-a^2 sin(a pi
-    x_m)``, each (n, 3, K); None for the last without ``second``."""
+    """Sine/cosine features per coordinate m and mode a, each (n, 3, K).
+
+    ``sin(a pi x_m)``, ``a cos(a pi x_m)`` and (``second``) ``-a^2 sin(a pi x_m)``; None for the last without
+    ``second``.
+    """
     k = torch.arange(1, n_modes + 1, dtype=points.dtype, device=points.device)
     arg = points.unsqueeze(-1) * (math.pi * k)
     sin = torch.sin(arg)

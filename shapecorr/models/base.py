@@ -56,8 +56,11 @@ def adam(lr: float) -> OptimizerFactory:
 
 
 def as_factory(value: Any, what: str = "optimizer") -> Callable | None:
-    """An optimizer/scheduler factory from a ``_partial_: true`` node (a mapping, e.g. from a checkpoint's
-    hyperparameters), an already built factory (passed through) or None."""
+    """An optimizer/scheduler factory from a ``_partial_: true`` node, a factory or None.
+
+    The node is a mapping, e.g. from a checkpoint's hyperparameters; an already built factory is passed
+    through.
+    """
     if value is None or callable(value):
         return value
     from omegaconf import DictConfig
@@ -74,9 +77,12 @@ def as_factory(value: Any, what: str = "optimizer") -> Callable | None:
 
 
 def factory_node(factory: Callable | None) -> dict | None:
-    """The ``_partial_: true`` node of a factory built by :func:`as_factory` / Hydra (``functools.partial`` of
-    an importable callable with keyword arguments), for checkpoints' hyperparameters; None for None or a factory
-    that has no such form (a checkpoint then needs the factory passed to ``load_from_checkpoint``)."""
+    """The ``_partial_: true`` node of a factory built by :func:`as_factory` / Hydra.
+
+    The factory is a ``functools.partial`` of an importable callable with keyword arguments; the node is for
+    checkpoints' hyperparameters. None for None or a factory that has no such form (a checkpoint then needs
+    the factory passed to ``load_from_checkpoint``).
+    """
     if not isinstance(factory, functools.partial) or factory.args:
         return None
     func = factory.func

@@ -447,8 +447,11 @@ class NeuroMorph(CorrespondenceModule):
                 "edge_counts": counts_x}
 
     def features(self, sample, edges: torch.Tensor | None = None) -> torch.Tensor:
-        """Backbone features ``(n, C)`` of a sample; its undirected ``edges (E, 2)``, when the caller has them, go
-        to a backbone that takes them (:class:`EdgeConvBackbone`: saves recomputing them)."""
+        """Backbone features ``(n, C)`` of a sample.
+
+        Its undirected ``edges (E, 2)``, when the caller has them, go to a backbone that takes them
+        (:class:`EdgeConvBackbone`: saves recomputing them).
+        """
         if edges is not None and self._backbone_takes_edges:
             return self.feature_net(sample, edges=edges)
         return self.feature_net(sample)

@@ -1,5 +1,7 @@
-"""DiffusionNet (Sharp, Attaiki, Crane & Ovsjanikov, "DiffusionNet: Discretization Agnostic Learning on
-Surfaces", ACM ToG 2022) and its backbone.
+"""DiffusionNet and its backbone.
+
+Sharp, Attaiki, Crane & Ovsjanikov, "DiffusionNet: Discretization Agnostic Learning on Surfaces", ACM ToG
+2022.
 
 The network maps per-vertex input features ``x (n, C_in)`` to per-vertex features ``(n, C_out)``:
 
