@@ -9,6 +9,7 @@ import hydra
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="evaluate")
 def main(cfg) -> None:
+    """Evaluate the matcher or maps of the composed config ``cfg`` (configs/evaluate.yaml)."""
     # Imported here so that `--help` and `--cfg job` answer without loading torch.
     from shapecorr.cli.evaluate import evaluate
 

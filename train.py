@@ -10,6 +10,7 @@ import hydra
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")
 def main(cfg) -> None:
+    """Train the model of the composed config ``cfg`` (configs/train.yaml)."""
     # Imported here so that `--help` and `--cfg job` answer without loading torch.
     from shapecorr.cli.train import train
 
