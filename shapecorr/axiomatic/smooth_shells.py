@@ -229,6 +229,7 @@ class ShellsShape:
 
     @property
     def name(self) -> str:
+        """Name of the underlying spectral shape."""
         return self.spectral.name
 
 

@@ -66,6 +66,7 @@ class FinalLastCheckpoint(ModelCheckpoint):
         return ModelCheckpoint.__qualname__ + super().state_key[len(type(self).__qualname__):]
 
     def on_train_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        """Save ``last.ckpt`` at the final step if it is not there yet, else finish as ModelCheckpoint does."""
         if self.save_last and self._last_global_step_saved != trainer.global_step:
             self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
             return

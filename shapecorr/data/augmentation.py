@@ -125,9 +125,11 @@ class Remeshed:
 
     @property
     def n_verts(self) -> int:
+        """Number of vertices of the remesh."""
         return int(self.verts.shape[0])
 
     def as_arrays(self) -> dict[str, np.ndarray]:
+        """The fields as a dict of arrays by field name."""
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
 
     def lift(self, values: torch.Tensor) -> torch.Tensor:
@@ -377,6 +379,7 @@ class AugmentationConfig:
 
     @classmethod
     def from_options(cls, options: Mapping[str, Any] | AugmentationConfig | None) -> AugmentationConfig:
+        """Config from a mapping of augment options (unknown keys raise ConfigError); a config passes through."""
         if isinstance(options, cls):
             return options
         options = dict(options or {})
@@ -412,6 +415,7 @@ class AugmentedPair:
 
     @property
     def name(self) -> str:
+        """Name of the augmented pair, ``<x>__<y>``."""
         return self.pair.name
 
     def to(self, device: torch.device | str) -> "AugmentedPair":
@@ -618,12 +622,14 @@ class AugmentedPairDataset(Dataset):
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:
+        """Epoch whose draws plain int indices use."""
         self.epoch = int(epoch)
 
     def __len__(self) -> int:
         return len(self.pairs)
 
     def wants_geodesics(self, epoch: int) -> bool:
+        """Whether the samples of ``epoch`` carry geodesic matrices."""
         return bool(self.geodesics(epoch) if callable(self.geodesics) else self.geodesics)
 
     def __getitem__(self, key: SampleKey | int) -> AugmentedPair:
@@ -632,4 +638,5 @@ class AugmentedPairDataset(Dataset):
         return self.augmenter(self.pairs[int(index)], rng, geodesics=self.wants_geodesics(epoch))
 
     def names(self, k: int) -> tuple[str, str]:
+        """Names ``(x, y)`` of the shapes of pair ``k``."""
         return self.pairs.names(k)

@@ -62,6 +62,7 @@ class ResumableShuffleSampler(Sampler[int]):
         self._skip = 0
 
     def set_epoch(self, epoch: int) -> None:
+        """Epoch of the next iteration (its permutation depends on ``(seed, epoch)``)."""
         self.epoch = int(epoch)
 
     def resume_at(self, epoch: int, skip: int) -> None:
@@ -255,6 +256,7 @@ class ShapePairDataModule(pl.LightningDataModule):
                 done.add(key)
 
     def setup(self, stage: str | None = None) -> None:
+        """Build the pair datasets of every split."""
         for split in SPLITS:
             self.pairs(split)
 
@@ -287,15 +289,19 @@ class ShapePairDataModule(pl.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
+        """Shuffled loader of the training pairs."""
         return self._loader("train", shuffle=True)
 
     def val_dataloader(self) -> DataLoader:
+        """Loader of the validation pairs, in order."""
         return self._loader("val", shuffle=False)
 
     def test_dataloader(self) -> DataLoader:
+        """Loader of the test pairs, in order."""
         return self._loader("test", shuffle=False)
 
     def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
+        """Move a batch to ``device``: pairs by their own ``to``, anything else as Lightning does."""
         if isinstance(batch, (PairSample, AugmentedPair)):
             return batch.to(device)
         return super().transfer_batch_to_device(batch, device, dataloader_idx)

@@ -129,14 +129,17 @@ class ShapeSample:
 
     @property
     def name(self) -> str:
+        """Name of the shape."""
         return self.shape.name
 
     @property
     def verts(self) -> torch.Tensor:
+        """Vertices ``(n, 3)`` float32 of the shape."""
         return self.shape.verts
 
     @property
     def faces(self) -> torch.Tensor:
+        """Faces ``(f, 3)`` int64 of the shape."""
         return self.shape.faces
 
     def _eigen(self, part: str) -> torch.Tensor:
@@ -198,9 +201,11 @@ class PairSample:
 
     @property
     def name(self) -> str:
+        """Name of the pair, ``<x>__<y>``."""
         return pair_name(self.x.name, self.y.name)
 
     def to(self, device: torch.device | str) -> PairSample:
+        """Copy of the pair with both samples on ``device``."""
         return PairSample(self.x.to(device), self.y.to(device))
 
 
@@ -657,5 +662,6 @@ class PairDataset(Dataset):
         return PairSample(self.shapes[i], self.shapes[j])
 
     def names(self, k: int) -> tuple[str, str]:
+        """Names ``(x, y)`` of the shapes of pair ``k``."""
         i, j = self.pairs[k]
         return self.shapes.names[i], self.shapes.names[j]

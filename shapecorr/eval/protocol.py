@@ -123,6 +123,7 @@ class PairRecord:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "PairRecord":
+        """Record from a dict (e.g. a parsed JSON line); keys that are not fields are ignored."""
         names = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in data.items() if k in names})
 
@@ -586,6 +587,7 @@ class PairEvaluator:
         self.geodesics = _LRU(lambda j: shapes.ground_truth_geodesics(j, method=settings.geodesics), settings.geodesic_cache)
 
     def __call__(self, i: int, j: int) -> PairRecord:
+        """Match, score and write pair ``(i, j)`` (maps, sequence, per-pair record); return its record."""
         start = time.perf_counter()
         x, y = self.sample(i), self.sample(j)
         name = pair_name(x.name, y.name)

@@ -237,6 +237,7 @@ class LinearBlend(torch.nn.Module):
 
     @property
     def needs_ground_truth(self) -> bool:
+        """Whether the wrapped matcher needs the ground truth."""
         return bool(getattr(self.matcher, "needs_ground_truth", False))
 
     @staticmethod

@@ -168,20 +168,25 @@ class CorrespondenceModule(pl.LightningModule):
         return {"result": result, **scores}
 
     def validation_step(self, batch, batch_idx: int):
+        """Score the validation pair's map (logged); keep the first pair for the figure."""
         out = self._evaluate_pair(batch, "val")
         if batch_idx == 0:
             self._first_val_pair = (batch, out["result"].p2p)
 
     def test_step(self, batch, batch_idx: int):
+        """Score the test pair's map (logged)."""
         self._evaluate_pair(batch, "test")
 
     def on_validation_epoch_start(self) -> None:
+        """Reset the validation errors of the epoch."""
         self._eval_errors["val"] = []
 
     def on_test_epoch_start(self) -> None:
+        """Reset the test errors of the epoch."""
         self._eval_errors["test"] = []
 
     def on_validation_epoch_end(self) -> None:
+        """Log the pairs seen (when fitting), the PCK AUC of the validation errors, and (rank 0) the figures."""
         trainer = self._trainer
         if trainer is not None and trainer.state.fn == "fit" and not trainer.sanity_checking:
             # x-axis of learning curves: training pairs (batches x ranks) seen so far, exact also mid-epoch and

@@ -391,6 +391,7 @@ class NeuroMorph(CorrespondenceModule):
 
     @property
     def augmenter(self) -> PairAugmenter:
+        """The pair augmenter, built on first use from the augment options and the shape cache."""
         if self._augmenter is None:
             self._augmenter = PairAugmenter(self.augment, self.shape_cache(), max_vertices=self.query_resolution,
                                             seed=self.seed, geodesics=self.geodesics)
@@ -458,6 +459,10 @@ class NeuroMorph(CorrespondenceModule):
 
     # -- training -----------------------------------------------------------------------------------------
     def training_step(self, batch, batch_idx: int) -> torch.Tensor:
+        """Loss of one (augmented) training pair: interpolate x towards y and log the loss terms and schedules.
+
+        Raises NumericalError when the loss is not finite.
+        """
         use_geo = self.lambda_geo != 0.0
         if isinstance(batch, AugmentedPair):  # augmented on the data side (AugmentedPairDataset)
             aug = batch
@@ -498,6 +503,7 @@ class NeuroMorph(CorrespondenceModule):
         return total
 
     def configure_optimizers(self):
+        """Optimizer (and scheduler) from the ``optimizer`` / ``scheduler`` factories."""
         return build_optimizers(self.parameters(), self.optimizer, self.scheduler)
 
     # -- queries ------------------------------------------------------------------------------------------
@@ -590,6 +596,7 @@ class NeuroMorph(CorrespondenceModule):
                 self.log(f"{split}/{key}", float(scores[key]), **log)
 
     def validation_step(self, batch, batch_idx: int):
+        """Score the validation pair's map and interpolation; keep the first pair's sequence for logging."""
         out = self._evaluate_pair(batch, "val")
         result = out["result"]
         if batch_idx == 0:
@@ -598,10 +605,12 @@ class NeuroMorph(CorrespondenceModule):
         self._score_interpolation(batch, result, "val")
 
     def test_step(self, batch, batch_idx: int):
+        """Score the test pair's map and interpolation."""
         out = self._evaluate_pair(batch, "test")
         self._score_interpolation(batch, out["result"], "test")
 
     def on_validation_epoch_end(self) -> None:
+        """Log as the base model does, then (rank 0) the first validation pair's interpolation."""
         super().on_validation_epoch_end()
         if self.trainer.sanity_checking or self.global_rank != 0 or self._first_val_sequence is None:
             return

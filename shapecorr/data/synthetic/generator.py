@@ -99,6 +99,7 @@ class ShapeSpec:
 
     @property
     def name(self) -> str:
+        """Shape name ``<class>_s<subject>_p<pose>`` (two-digit subject and pose)."""
         return f"{self.cls}_s{self.subject:02d}_p{self.pose:02d}"
 
 

@@ -111,6 +111,7 @@ class BodyPlan:
 
     @property
     def bone_names(self) -> tuple[str, ...]:
+        """Names of the bones, in order."""
         return tuple(b.name for b in self.bones)
 
     def index(self, name: str) -> int:
