@@ -267,7 +267,8 @@ def remeshed_sample(sample: ShapeSample, remeshed: Remeshed) -> ShapeSample:
     mass = np.bincount(remeshed.faces.ravel(), np.repeat(triangle_areas(remeshed.verts, remeshed.faces) / 3.0, 3),
                        minlength=m)
     nearest = torch.from_numpy(remeshed.nearest_vertex)
-    carry = lambda c: None if c is None else nearest[c.detach().cpu()]
+    def carry(c):
+        return None if c is None else nearest[c.detach().cpu()]
     shape = sample.shape
     return ShapeSample(
         shape=Shape(verts=verts, faces=faces, name=f"{shape.name}@{m}", path=shape.path, scale=shape.scale,
@@ -427,7 +428,8 @@ class AugmentedPair:
 
 def _geometry_only(sample: ShapeSample) -> ShapeSample:
     """CPU copy of a sample without its eigenbasis and descriptors (augmented shapes carry none)."""
-    move = lambda t: None if t is None else t.detach().cpu()
+    def move(t):
+        return None if t is None else t.detach().cpu()
     shape = sample.shape.to("cpu")
     return ShapeSample(shape=shape, evals=torch.zeros(0), evecs=torch.zeros(shape.n_verts, 0),
                        mass=move(sample.mass), features={}, corres=move(sample.corres),

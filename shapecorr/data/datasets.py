@@ -180,7 +180,8 @@ class ShapeSample:
 
     def to(self, device: torch.device | str) -> ShapeSample:
         """Copy with every tensor on ``device``."""
-        move = lambda t: None if t is None else t.to(device)
+        def move(t):
+            return None if t is None else t.to(device)
         return ShapeSample(
             shape=self.shape.to(device),
             operators={name: {k: v.to(device) for k, v in arrays.items()} for name, arrays in self.operators.items()},

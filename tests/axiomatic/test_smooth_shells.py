@@ -58,7 +58,8 @@ def _blob(points: np.ndarray) -> np.ndarray:
 
 def _shape(verts, faces, name, config=SMALL):
     evals, evecs, mass = eigenbasis(verts, faces, config.num_eigs)
-    f32 = lambda a: torch.tensor(np.asarray(a), dtype=torch.float32)
+    def f32(a):
+        return torch.tensor(np.asarray(a), dtype=torch.float32)
     return shells_shape(f32(verts), torch.tensor(faces), f32(evals), f32(evecs), f32(mass),
                         shot=f32(shot(verts, faces)), name=name)
 

@@ -102,7 +102,8 @@ def test_level_weights_select_levels(pair):
 
 def test_sample_generator_depends_on_seed_epoch_batch():
     model = small()
-    draw = lambda m, b: torch.randint(0, 10**6, (5,), generator=m.sample_generator(b))
+    def draw(m, b):
+        return torch.randint(0, 10**6, (5,), generator=m.sample_generator(b))
     assert torch.equal(draw(model, 4), draw(model, 4))
     assert not torch.equal(draw(model, 4), draw(model, 5))
     assert not torch.equal(draw(model, 4), draw(small(seed=1), 4))
