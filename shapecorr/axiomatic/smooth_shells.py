@@ -172,7 +172,8 @@ class SmoothShellsConfig:
         if len(self.rigid_rotations) != 2 or min(self.rigid_rotations) < 1:
             raise ConfigError(f"smooth_shells.rigid_rotations must be two counts >= 1, got {self.rigid_rotations}")
         if not self.mcmc_lambda_laps or min(self.mcmc_lambda_laps) < 0:
-            raise ConfigError(f"smooth_shells.mcmc_lambda_laps must be non-negative values, got {self.mcmc_lambda_laps}")
+            raise ConfigError("smooth_shells.mcmc_lambda_laps must be non-negative values, "
+                              f"got {self.mcmc_lambda_laps}")
         if self.nn_backend not in ("auto", "kdtree", "brute"):
             raise ConfigError(f"smooth_shells.nn_backend must be auto, kdtree or brute, got {self.nn_backend!r}")
 

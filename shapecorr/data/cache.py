@@ -321,7 +321,8 @@ def _assemble(arrays: dict[str, np.ndarray], sparse: Mapping[str, str]) -> dict[
         shape = tuple(int(s) for s in parts["shape"])
         major = shape[0] if fmt == "csr" else shape[1]
         indptr, indices = parts["indptr"], parts["indices"]
-        if (indptr.shape != (major + 1,) or indptr[0] != 0 or indptr[-1] != len(indices) or len(indices) != len(parts["data"])
+        if (indptr.shape != (major + 1,) or indptr[0] != 0 or indptr[-1] != len(indices)
+                or len(indices) != len(parts["data"])
                 or np.any(np.diff(indptr) < 0)
                 or (len(indices) and (indices.min() < 0 or indices.max() >= shape[1 if fmt == "csr" else 0]))):
             raise _CorruptEntry(f"sparse value {name!r} is inconsistent")

@@ -171,7 +171,8 @@ class ShapePairDataModule(pl.LightningDataModule):
                     raise ConfigError(f"unknown split {split!r}; use one of {SPLITS}")
                 unknown = set(options) - allowed
                 if unknown:
-                    raise ConfigError(f"unknown option(s) {sorted(unknown)} for split {split!r}; allowed: {sorted(allowed)}")
+                    raise ConfigError(f"unknown option(s) {sorted(unknown)} for split {split!r}; "
+                                      f"allowed: {sorted(allowed)}")
         self.normalization = _dataclass_from(Normalization, normalization)
         self.operators = OperatorConfig.from_options(operators)
         self.validation = _dataclass_from(ValidationOptions, validation)
@@ -189,8 +190,8 @@ class ShapePairDataModule(pl.LightningDataModule):
 
         The wrapped dataset is indexed by :class:`~shapecorr.data.augmentation.SampleKey` ``(epoch, position,
         index)`` (:class:`ResumableShuffleSampler` with ``keys=True``; under several ranks
-        :class:`KeyedDistributedSampler`, position = place in the rank's shard); it runs in the DataLoader workers. Call before the training
-        loader is built (a model does it in its ``setup`` hook).
+        :class:`KeyedDistributedSampler`, position = place in the rank's shard); it runs in the DataLoader workers.
+        Call before the training loader is built (a model does it in its ``setup`` hook).
         """
         self._train_wrapper = wrapper
 

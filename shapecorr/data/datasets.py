@@ -10,7 +10,8 @@ Folder layout (the de-facto layout of FAUST_r / SCAPE_r and of ``data_prep/make_
                              without a splits/ folder every shape belongs to every split
 
 :class:`ShapeDataset` yields one :class:`ShapeSample` per shape: the normalized :class:`Shape`, the per-shape
-operators requested (``sample.operators[name]``, :mod:`shapecorr.data.operators`) and ground truth. :class:`PairDataset` yields ordered pairs.
+operators requested (``sample.operators[name]``, :mod:`shapecorr.data.operators`) and ground truth.
+:class:`PairDataset` yields ordered pairs.
 Derived quantities come from the on-disk :class:`~shapecorr.data.cache.ShapeCache`; missing entries are
 computed by :meth:`ShapeDataset.prepare` (in parallel worker processes, with a progress bar) — the data
 module calls it before training starts, and ``data_prep/prepare.py`` calls it ahead of time.
@@ -235,7 +236,8 @@ def find_mesh_files(root: Path) -> dict[str, Path]:
     for path in sorted(mesh_dir.iterdir()):
         if path.suffix.lower() in MESH_EXTENSIONS and path.is_file():
             if path.stem in files:
-                raise DatasetError(f"two mesh files named {path.stem!r}: {files[path.stem].name} and {path.name}", mesh_dir)
+                raise DatasetError(f"two mesh files named {path.stem!r}: {files[path.stem].name} and {path.name}",
+                                   mesh_dir)
             files[path.stem] = path
         elif path.is_dir():
             skipped.append(f"{path.name}/ (a directory; sub-folders are not searched)")
@@ -289,7 +291,8 @@ def select_names(
                     f"no split file for split {split!r} (expected splits/{split}.txt, or give an index range in "
                     "the data config; a folder without splits/ puts every shape in every split)", root)
             raise DatasetError("split file does not exist", path)
-        chosen = [line.strip() for line in path.read_text(errors="surrogateescape").splitlines() if line.strip() and not line.startswith("#")]
+        chosen = [line.strip() for line in path.read_text(errors="surrogateescape").splitlines()
+                  if line.strip() and not line.startswith("#")]
         source = str(path)
     elif index_range is not None:
         start, stop = int(index_range[0]), int(index_range[1])
@@ -465,7 +468,8 @@ class ShapeDataset(Dataset):
         if require_corres:
             missing = [n for n, p in self._corres_paths.items() if p is None]
             if missing:
-                raise DatasetError(f"no ground truth corres/<name>.vts for {len(missing)} shape(s), e.g. {missing[0]}", self.root)
+                raise DatasetError(f"no ground truth corres/<name>.vts for {len(missing)} shape(s), e.g. {missing[0]}",
+                                   self.root)
         self._check_corres_lengths()
 
     def _corres_path(self, name: str, suffix: str) -> Path | None:

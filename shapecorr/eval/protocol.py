@@ -7,8 +7,9 @@ computed from Y's faces. The cache holds, per target, the rows from its ground-t
 (``e_r = d_Y(p(gx[r]), gy[r])`` is read from row ``gy[r]``; ``R x n`` float32, never ``n x n``).
 Reference points on small islands of X or Y (connected components other than the largest) are excluded and
 counted (``n_excluded`` per pair, ``n_excluded_points`` in ``metrics.json``); a prediction that lands on an
-island of Y is scored at the nearest vertex of Y's largest component. When Y has a mirrored ground truth (``.sym.vts``) the same map is also scored
-against it; that number is reported separately and never mixed into the main error.
+island of Y is scored at the nearest vertex of Y's largest component. When Y has a mirrored ground truth
+(``.sym.vts``) the same map is also scored against it; that number is reported separately and never mixed into
+the main error.
 
 Per pair, under the output folder::
 
@@ -584,7 +585,8 @@ class PairEvaluator:
         self.shapes, self.matcher, self.out_dir, self.settings = shapes, matcher, Path(out_dir), settings
         self.device = torch.device(settings.device)
         self.sample = _LRU(lambda i: shapes[i], settings.sample_cache)
-        self.geodesics = _LRU(lambda j: shapes.ground_truth_geodesics(j, method=settings.geodesics), settings.geodesic_cache)
+        self.geodesics = _LRU(lambda j: shapes.ground_truth_geodesics(j, method=settings.geodesics),
+                              settings.geodesic_cache)
 
     def __call__(self, i: int, j: int) -> PairRecord:
         """Match, score and write pair ``(i, j)`` (maps, sequence, per-pair record); return its record."""

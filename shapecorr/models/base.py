@@ -105,7 +105,8 @@ def build_optimizers(
     parameters
         The trainable parameters (those with ``requires_grad``; an empty list returns ``None``: nothing to learn).
     optimizer
-        Optimizer factory, e.g. the ``model.optimizer`` node ``{_target_: torch.optim.Adam, _partial_: true, lr: 1e-4}``.
+        Optimizer factory, e.g. the ``model.optimizer`` node
+        ``{_target_: torch.optim.Adam, _partial_: true, lr: 1e-4}``.
     scheduler
         Optional LR-scheduler factory (``model.scheduler`` node), stepped every ``scheduler_interval``
         (``"epoch"`` or ``"step"``).

@@ -27,8 +27,8 @@ weight). The augmentation runs on the data side: in its ``setup`` hook the modul
 :class:`~shapecorr.data.augmentation.AugmentedPairDataset` wrapper (DataLoader workers remesh in parallel);
 a plain :class:`~shapecorr.data.datasets.PairSample` batch (another loader, direct calls) is augmented in
 ``training_step`` with the same draws. The draws are seeded by ``(seed, epoch, batch index)``, so a resumed
-run sees the augmentations of the uninterrupted one. Without remeshing, shapes larger than ``query_resolution`` are trained on their
-working-resolution remesh (the original trained on 2000-vertex FAUST_r meshes).
+run sees the augmentations of the uninterrupted one. Without remeshing, shapes larger than ``query_resolution``
+are trained on their working-resolution remesh (the original trained on 2000-vertex FAUST_r meshes).
 
 Queries (:meth:`NeuroMorph.match`, :meth:`NeuroMorph.interpolate`) run on the shapes as given, or, with
 ``query_resolution`` set and a shape larger than that, on a cached remesh with that many vertices (published

@@ -276,7 +276,8 @@ class DiffusionNet(nn.Module):
                 f"evecs {tuple(evecs.shape)}, mass {tuple(mass.shape)}"
             )
         if tuple(grad_x.shape) != (n, n) or tuple(grad_y.shape) != (n, n):
-            raise ConfigError(f"gradient operators must be ({n}, {n}), got {tuple(grad_x.shape)}, {tuple(grad_y.shape)}")
+            raise ConfigError(f"gradient operators must be ({n}, {n}), "
+                              f"got {tuple(grad_x.shape)}, {tuple(grad_y.shape)}")
         h = self.first_lin(x)
         for block in self.blocks:
             h = block(h, evals, evecs, mass, grad_x, grad_y)

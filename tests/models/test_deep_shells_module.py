@@ -232,7 +232,8 @@ def test_configs_compose_and_instantiate(tmp_path, compose_config):
     ablation = instantiate(compose_config("evaluate", ["model=deep_shells_ablation"]).model, _convert_="object")
     assert isinstance(ablation.backbone, IdentityBackbone) and ablation.refine
     for name in ("evaluate", "train"):
-        ev = instantiate(compose_config(name, ["model=deep_shells", "model/backbone=identity"]).model, _convert_="object")
+        cfg = compose_config(name, ["model=deep_shells", "model/backbone=identity"])
+        ev = instantiate(cfg.model, _convert_="object")
         assert isinstance(ev.backbone, IdentityBackbone) and not ev.backbone.trainable
     tiny = instantiate(compose_config("train", ["debug=tiny"]).model, _convert_="object")
     assert isinstance(tiny.backbone, SpectralBackbone) and tiny.backbone.num_eigs == 40
