@@ -232,8 +232,8 @@ def test_configs_compose_and_instantiate(tmp_path, compose_config):
     ablation = instantiate(compose_config("evaluate", ["model=deep_shells_ablation"]).model, _convert_="object")
     assert isinstance(ablation.backbone, IdentityBackbone) and ablation.refine
     for name in ("evaluate", "train"):
-        cfg = compose_config(name, ["model=deep_shells", "model/backbone=identity"])
-        ev = instantiate(cfg.model, _convert_="object")
+        ev_cfg = compose_config(name, ["model=deep_shells", "model/backbone=identity"])
+        ev = instantiate(ev_cfg.model, _convert_="object")
         assert isinstance(ev.backbone, IdentityBackbone) and not ev.backbone.trainable
     tiny = instantiate(compose_config("train", ["debug=tiny"]).model, _convert_="object")
     assert isinstance(tiny.backbone, SpectralBackbone) and tiny.backbone.num_eigs == 40
