@@ -1,7 +1,7 @@
 """Evaluate a matcher (or precomputed maps) on ordered pairs of a dataset; see configs/evaluate.yaml.
 
-    python evaluate.py model=descriptor_nn data=faust_r data.root=/path/to/FAUST_r pairs=test output_dir=OUT
-    python evaluate.py maps_dir=DIR data=folder data.root=DIR output_dir=OUT
+python evaluate.py model=descriptor_nn data=faust_r data.root=/path/to/FAUST_r pairs=test output_dir=OUT
+python evaluate.py maps_dir=DIR data=folder data.root=DIR output_dir=OUT
 """
 
 import hydra
@@ -9,6 +9,7 @@ import hydra
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="evaluate")
 def main(cfg) -> None:
+    """Evaluate the matcher or maps of the composed config ``cfg`` (configs/evaluate.yaml)."""
     # Imported here so that `--help` and `--cfg job` answer without loading torch.
     from shapecorr.cli.evaluate import evaluate
 

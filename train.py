@@ -1,8 +1,8 @@
 """Train a learned correspondence model (default: Deep Shells on the embedded synthetic data); see configs/train.yaml.
 
-    python train.py
-    python train.py experiment=deep_shells_faust_r data.root=/path/to/FAUST_r trainer=gpu
-    python train.py ckpt_path=outputs/train/<run>/checkpoints/last.ckpt
+python train.py
+python train.py experiment=deep_shells_faust_r data.root=/path/to/FAUST_r trainer=gpu
+python train.py ckpt_path=outputs/train/<run>/checkpoints/last.ckpt
 """
 
 import hydra
@@ -10,6 +10,7 @@ import hydra
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")
 def main(cfg) -> None:
+    """Train the model of the composed config ``cfg`` (configs/train.yaml)."""
     # Imported here so that `--help` and `--cfg job` answer without loading torch.
     from shapecorr.cli.train import train
 

@@ -133,7 +133,8 @@ def main(argv=None) -> int:
         run_dir = Path(args.summarize)
         eval_dir, ablation_dir, published_dir = args.eval_dir, args.ablation_dir, args.published_dir
     summary = summarize(run_dir, *(None if d is None else Path(d) for d in (eval_dir, ablation_dir, published_dir)))
-    report = bench_common.summary_report("deep_shells_faust_r.py", sys.argv[1:] if argv is None else list(argv), summary)
+    report = bench_common.summary_report("deep_shells_faust_r.py", sys.argv[1:] if argv is None else list(argv),
+                                         summary)
     print(markdown(summary))
     bench_common.write_report(args.out, report)
     return 0

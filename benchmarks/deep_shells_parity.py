@@ -124,7 +124,8 @@ def main(argv=None) -> int:
     report = {
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": {"cpu": bench_common.cpu_model(), "cores": os.cpu_count(), "gpu": None, "torch_threads": args.threads,
+        "machine": {"cpu": bench_common.cpu_model(), "cores": os.cpu_count(), "gpu": None,
+                    "torch_threads": args.threads,
                     "load_average_before": list(load_before)},
         "versions": bench_common.package_versions(),
         "settings": {"repeats": args.repeats, "train_samples": TRAIN_SAMPLES, "geodesics": "heat (potpourri3d)",

@@ -90,7 +90,8 @@ def main(argv: list[str] | None = None) -> dict:
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "date": datetime.datetime.now().isoformat(timespec="seconds"),
         "machine": bench_common.machine_info(),
-        "dataset": f"FAUST_r test: tr_reg_080..099, {args.max_pairs} evenly spaced ordered pairs of 380; heat geodesics",
+        "dataset": f"FAUST_r test: tr_reg_080..099, {args.max_pairs} evenly spaced ordered pairs of 380; "
+                   "heat geodesics",
         "notes": [
             ("errors: fraction of sqrt(target area); seconds_per_pair: the matcher alone (one thread if "
             "OMP_NUM_THREADS=1); mean_volume_change: relative volume change of the deformed x at t = 1."),

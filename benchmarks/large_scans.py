@@ -125,7 +125,8 @@ def main() -> None:
             counts = make_folder(tmp / "data", Path(args.faust_r), target, args.n_ref)
             run = run_prepare if args.prepare_only else run_evaluate
             result = run(tmp / "data", tmp / "cache", tmp / "out", args.n_eig)
-            result.update({"mode": "prepare" if args.prepare_only else "evaluate","target_vertices": target, "n_verts": counts, "n_ref": args.n_ref, "n_eig": args.n_eig,
+            result.update({"mode": "prepare" if args.prepare_only else "evaluate", "target_vertices": target,
+                           "n_verts": counts, "n_ref": args.n_ref, "n_eig": args.n_eig,
                            "rows_mb_at_5000_refs": [4 * 5000 * n / 2**20 for n in counts]})
             runs.append(result)
             print(json.dumps({k: v for k, v in result.items() if k != "output_tail"}, indent=1), flush=True)

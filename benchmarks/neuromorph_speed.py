@@ -18,7 +18,8 @@ steps, for these variants in the same run:
 * ``naive``: the same model evaluated the way the original code does it: per-edge EdgeConv MLP on the
   face-listed edges (every interior edge twice per direction) with torch's scatter autograd, the geodesic
   loss through plain autograd, "average" ARAP differentiated through the SVD with ``face counts``
-  weights (each face edge once, as the original's ARAP edge list). Its ratio to ``fast`` is measured on the same machine in the same run.
+  weights (each face edge once, as the original's ARAP edge list). Its ratio to ``fast`` is measured on the
+  same machine in the same run.
 * ``fast_bf16``: ``fast`` with both networks under ``torch.autocast(dtype=bfloat16)`` (losses in float32):
   mixed precision, *not* the same numbers; shown because bf16 matrix units make it much faster on CPUs that
   have them.
@@ -384,14 +385,16 @@ def main(argv=None) -> None:
                     results.append(res)
                     print(f"threads={threads} T={steps} {variant:9s} malloc={malloc:7s}: "
                           f"{res['seconds_per_step_median']:.3f} s/step (cpu {res['cpu_seconds_per_step_median']:.3f}"
-                          f" s), peak RSS {res['peak_rss_mib']:.0f} MiB, load {res['load_average_before_after'][0][0]:.1f}",
+                          f" s), peak RSS {res['peak_rss_mib']:.0f} MiB, "
+                          f"load {res['load_average_before_after'][0][0]:.1f}",
                           flush=True)
         if args.queries:
             for variant in [v for v in variants if v in ("fast", "baseline")]:
                 res = _subprocess(args, variant, 0, threads, args.queries, "default", "--single-query")
                 queries.append(res)
                 print(f"threads={threads} query {variant:9s}: {res['seconds_per_query_median']:.3f} s/query (cpu "
-                      f"{res['cpu_seconds_per_query_median']:.3f} s), peak RSS {res['peak_rss_mib']:.0f} MiB", flush=True)
+                      f"{res['cpu_seconds_per_query_median']:.3f} s), peak RSS {res['peak_rss_mib']:.0f} MiB",
+                      flush=True)
     load_after = os.getloadavg()
     summary = _summary(args, results, queries)
     report = {

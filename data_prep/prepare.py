@@ -12,6 +12,7 @@ from shapecorr.cli.prepare import prepare
 
 @hydra.main(version_base="1.3", config_path="../configs", config_name="prepare")
 def main(cfg) -> None:
+    """Fill the shape cache of the dataset of the composed config ``cfg`` (configs/prepare.yaml)."""
     prepare(cfg)
 
 

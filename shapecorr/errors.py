@@ -32,8 +32,10 @@ class MeshReadError(ShapeCorrError):
 
 
 class InvalidMeshError(ShapeCorrError):
-    """A mesh was read but its content is invalid (NaN/Inf coordinates, bad face indices,
-    degenerate faces, unreferenced vertices, ...)."""
+    """A mesh was read but its content is invalid.
+
+    E.g. NaN/Inf coordinates, bad face indices, degenerate faces, unreferenced vertices.
+    """
 
 
 class CorrespondenceError(ShapeCorrError):

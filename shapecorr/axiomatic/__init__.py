@@ -1,0 +1,1 @@
+"""Axiomatic matching: optimization methods without training (Smooth Shells, divergence-free interpolation)."""

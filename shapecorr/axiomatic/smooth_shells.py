@@ -172,7 +172,8 @@ class SmoothShellsConfig:
         if len(self.rigid_rotations) != 2 or min(self.rigid_rotations) < 1:
             raise ConfigError(f"smooth_shells.rigid_rotations must be two counts >= 1, got {self.rigid_rotations}")
         if not self.mcmc_lambda_laps or min(self.mcmc_lambda_laps) < 0:
-            raise ConfigError(f"smooth_shells.mcmc_lambda_laps must be non-negative values, got {self.mcmc_lambda_laps}")
+            raise ConfigError("smooth_shells.mcmc_lambda_laps must be non-negative values, "
+                              f"got {self.mcmc_lambda_laps}")
         if self.nn_backend not in ("auto", "kdtree", "brute"):
             raise ConfigError(f"smooth_shells.nn_backend must be auto, kdtree or brute, got {self.nn_backend!r}")
 
@@ -229,6 +230,7 @@ class ShellsShape:
 
     @property
     def name(self) -> str:
+        """Name of the underlying spectral shape."""
         return self.spectral.name
 
 
@@ -411,8 +413,9 @@ def _batched_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 
 
 def _nearest(queries: torch.Tensor, points: torch.Tensor, backend: str = "auto") -> torch.Tensor:
-    """Exact Euclidean nearest neighbours in batches: for ``queries (B, q, d)``, ``points (B, p, d)`` the
-    index ``(B, q)`` of the nearest point.
+    """Exact Euclidean nearest neighbours in batches.
+
+    For ``queries (B, q, d)``, ``points (B, p, d)``: the index ``(B, q)`` of the nearest point.
 
     Written here because :mod:`shapecorr.matching.nearest_neighbors` has no batch dimension; the random search
     and the rigid surrogate runs solve many small independent problems at once. On the GPU: one distance

@@ -17,8 +17,10 @@ F = TypeVar("F", bound=Callable)
 
 
 def exit_on_user_error(fn: F) -> F:
-    """Run ``fn``; on a :class:`ShapeCorrError` print ``error: <message>`` to stderr (no traceback) and exit 2;
-    on Ctrl-C print one line (completed work is kept) and exit 130.
+    """Run ``fn`` and turn input errors and Ctrl-C into short messages and exit codes.
+
+    On a :class:`ShapeCorrError` print ``error: <message>`` to stderr (no traceback) and exit 2; on Ctrl-C
+    print one line (completed work is kept) and exit 130.
 
     Only deliberate input/config errors are caught; genuine bugs keep their traceback.
     """

@@ -1,5 +1,6 @@
-"""``evaluate.py``: evaluate any matcher — learned, axiomatic, a baseline, or maps computed elsewhere — or
-transfer a pose with an interpolating one.
+"""``evaluate.py``: evaluate any matcher, or transfer a pose with an interpolating one.
+
+The matcher may be learned, axiomatic, a baseline, or maps computed elsewhere.
 
     python evaluate.py model=descriptor_nn data=faust_r data.root=DIR pairs=test output_dir=OUT
     python evaluate.py model=<learned> ckpt_path=CKPT data=... output_dir=OUT [interp_times=[0,0.5,1,1.5]]
@@ -234,7 +235,8 @@ def interp_times_option(cfg: DictConfig) -> tuple[float, ...] | None:
     if value is None:
         return None
     if not OmegaConf.is_list(value):
-        raise ConfigError(f"interp_times must be a list of times (e.g. interp_times=[0,0.5,1,1.5]) or null, got {value!r}")
+        raise ConfigError("interp_times must be a list of times (e.g. interp_times=[0,0.5,1,1.5]) or null, "
+                          f"got {value!r}")
     return protocol.check_interp_times(OmegaConf.to_container(value, resolve=True))
 
 

@@ -1,6 +1,6 @@
-"""``evaluate.py task=pose_transfer``: put shape A into the pose of shape B with an interpolating matcher.
+r"""``evaluate.py task=pose_transfer``: put shape A into the pose of shape B with an interpolating matcher.
 
-    python evaluate.py model=neuromorph ckpt_path=CKPT task=pose_transfer source=A.off target=B.off \\
+    python evaluate.py model=neuromorph ckpt_path=CKPT task=pose_transfer source=A.off target=B.off \
         [output_dir=OUT] [interp_times=[0,0.25,0.5,0.75,1]]
 
 The two meshes (.off/.ply/.obj) go through the data pipeline of every other shape: read and validated

@@ -59,11 +59,14 @@ class FinalLastCheckpoint(ModelCheckpoint):
 
     @property
     def state_key(self) -> str:
-        """The key of a plain ModelCheckpoint with the same options, so that checkpoints written before this
-        subclass existed (and by it) restore the checkpoint state on resume."""
+        """The key of a plain ModelCheckpoint with the same options.
+
+        So checkpoints written before this subclass existed (and by it) restore the checkpoint state on resume.
+        """
         return ModelCheckpoint.__qualname__ + super().state_key[len(type(self).__qualname__):]
 
     def on_train_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        """Save ``last.ckpt`` at the final step if it is not there yet, else finish as ModelCheckpoint does."""
         if self.save_last and self._last_global_step_saved != trainer.global_step:
             self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
             return

@@ -125,9 +125,11 @@ class Remeshed:
 
     @property
     def n_verts(self) -> int:
+        """Number of vertices of the remesh."""
         return int(self.verts.shape[0])
 
     def as_arrays(self) -> dict[str, np.ndarray]:
+        """The fields as a dict of arrays by field name."""
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
 
     def lift(self, values: torch.Tensor) -> torch.Tensor:
@@ -265,7 +267,8 @@ def remeshed_sample(sample: ShapeSample, remeshed: Remeshed) -> ShapeSample:
     mass = np.bincount(remeshed.faces.ravel(), np.repeat(triangle_areas(remeshed.verts, remeshed.faces) / 3.0, 3),
                        minlength=m)
     nearest = torch.from_numpy(remeshed.nearest_vertex)
-    carry = lambda c: None if c is None else nearest[c.detach().cpu()]
+    def carry(c):
+        return None if c is None else nearest[c.detach().cpu()]
     shape = sample.shape
     return ShapeSample(
         shape=Shape(verts=verts, faces=faces, name=f"{shape.name}@{m}", path=shape.path, scale=shape.scale,
@@ -377,6 +380,7 @@ class AugmentationConfig:
 
     @classmethod
     def from_options(cls, options: Mapping[str, Any] | AugmentationConfig | None) -> AugmentationConfig:
+        """Config from a mapping of augment options (unknown keys raise ConfigError); a config passes through."""
         if isinstance(options, cls):
             return options
         options = dict(options or {})
@@ -412,6 +416,7 @@ class AugmentedPair:
 
     @property
     def name(self) -> str:
+        """Name of the augmented pair, ``<x>__<y>``."""
         return self.pair.name
 
     def to(self, device: torch.device | str) -> "AugmentedPair":
@@ -423,7 +428,8 @@ class AugmentedPair:
 
 def _geometry_only(sample: ShapeSample) -> ShapeSample:
     """CPU copy of a sample without its eigenbasis and descriptors (augmented shapes carry none)."""
-    move = lambda t: None if t is None else t.detach().cpu()
+    def move(t):
+        return None if t is None else t.detach().cpu()
     shape = sample.shape.to("cpu")
     return ShapeSample(shape=shape, evals=torch.zeros(0), evecs=torch.zeros(shape.n_verts, 0),
                        mass=move(sample.mass), features={}, corres=move(sample.corres),
@@ -618,12 +624,14 @@ class AugmentedPairDataset(Dataset):
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:
+        """Epoch whose draws plain int indices use."""
         self.epoch = int(epoch)
 
     def __len__(self) -> int:
         return len(self.pairs)
 
     def wants_geodesics(self, epoch: int) -> bool:
+        """Whether the samples of ``epoch`` carry geodesic matrices."""
         return bool(self.geodesics(epoch) if callable(self.geodesics) else self.geodesics)
 
     def __getitem__(self, key: SampleKey | int) -> AugmentedPair:
@@ -632,4 +640,5 @@ class AugmentedPairDataset(Dataset):
         return self.augmenter(self.pairs[int(index)], rng, geodesics=self.wants_geodesics(epoch))
 
     def names(self, k: int) -> tuple[str, str]:
+        """Names ``(x, y)`` of the shapes of pair ``k``."""
         return self.pairs.names(k)

@@ -163,8 +163,9 @@ def _open_archive(path: Path) -> Iterator[np.lib.npyio.NpzFile]:
 
 
 def content_hash(verts: Any, faces: Any) -> str:
-    """SHA-256 of a mesh's content: shapes and bytes of ``verts`` as little-endian float64 and ``faces``
-    as little-endian int64.
+    """SHA-256 of a mesh's content.
+
+    Hashes shapes and bytes of ``verts`` as little-endian float64 and ``faces`` as little-endian int64.
 
     Parameters
     ----------
@@ -262,8 +263,11 @@ def _check_stored(key: CacheKey, name: str, a: np.ndarray) -> np.ndarray:
 
 
 def _prepare_arrays(key: CacheKey, arrays: Mapping[str, Any]) -> dict[str, Any]:
-    """Validate ``arrays`` and convert them to their storage dtypes (float64 -> float32 unless kept); sparse
-    values become ``scipy.sparse`` CSR (CSC stays CSC) arrays with sorted indices."""
+    """Validate ``arrays`` and convert them to their storage dtypes.
+
+    float64 becomes float32 unless kept; sparse values become ``scipy.sparse`` CSR (CSC stays CSC) arrays with
+    sorted indices.
+    """
     if not isinstance(arrays, Mapping) or not arrays:
         raise CacheError(f"cache entry {key.name!r} must be a non-empty dict of arrays, got {arrays!r:.80}")
     stored = {}
@@ -284,8 +288,10 @@ def _prepare_arrays(key: CacheKey, arrays: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def as_stored(key: CacheKey, arrays: Mapping[str, Any]) -> dict[str, Any]:
-    """``arrays`` exactly as :meth:`ShapeCache.put` would store and return them, without writing (read-only
-    caches return this on a miss, so a first run and a cached run see identical values)."""
+    """``arrays`` exactly as :meth:`ShapeCache.put` would store and return them, without writing.
+
+    Read-only caches return this on a miss, so a first run and a cached run see identical values.
+    """
     return _prepare_arrays(key, arrays)
 
 
@@ -315,7 +321,8 @@ def _assemble(arrays: dict[str, np.ndarray], sparse: Mapping[str, str]) -> dict[
         shape = tuple(int(s) for s in parts["shape"])
         major = shape[0] if fmt == "csr" else shape[1]
         indptr, indices = parts["indptr"], parts["indices"]
-        if (indptr.shape != (major + 1,) or indptr[0] != 0 or indptr[-1] != len(indices) or len(indices) != len(parts["data"])
+        if (indptr.shape != (major + 1,) or indptr[0] != 0 or indptr[-1] != len(indices)
+                or len(indices) != len(parts["data"])
                 or np.any(np.diff(indptr) < 0)
                 or (len(indices) and (indices.min() < 0 or indices.max() >= shape[1 if fmt == "csr" else 0]))):
             raise _CorruptEntry(f"sparse value {name!r} is inconsistent")
@@ -397,8 +404,9 @@ class ShapeCache:
         return arrays
 
     def put(self, key: CacheKey, arrays: Mapping[str, Any]) -> dict[str, Any]:
-        """Store ``arrays`` under ``key`` atomically and return them as stored (float64 -> float32
-        unless ``key.keep_float64``).
+        """Store ``arrays`` under ``key`` atomically and return them as stored.
+
+        float64 becomes float32 unless ``key.keep_float64``.
 
         Raises
         ------

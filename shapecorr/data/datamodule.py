@@ -62,6 +62,7 @@ class ResumableShuffleSampler(Sampler[int]):
         self._skip = 0
 
     def set_epoch(self, epoch: int) -> None:
+        """Epoch of the next iteration (its permutation depends on ``(seed, epoch)``)."""
         self.epoch = int(epoch)
 
     def resume_at(self, epoch: int, skip: int) -> None:
@@ -85,8 +86,9 @@ class ResumableShuffleSampler(Sampler[int]):
 
 
 class KeyedDistributedSampler(DistributedSampler):
-    """A rank's shard of the shuffled indices (Lightning's ``DistributedSampler`` order), as
-    :class:`~shapecorr.data.augmentation.SampleKey` ``(epoch, position in the shard, index)``.
+    """A rank's shard of the shuffled indices (Lightning's ``DistributedSampler`` order).
+
+    Items are :class:`~shapecorr.data.augmentation.SampleKey` ``(epoch, position in the shard, index)``.
 
     Used for datasets whose items depend on the epoch and the step (augmented training pairs) under several
     ranks; being a ``DistributedSampler``, Lightning keeps it (and calls its ``set_epoch``) instead of replacing
@@ -169,7 +171,8 @@ class ShapePairDataModule(pl.LightningDataModule):
                     raise ConfigError(f"unknown split {split!r}; use one of {SPLITS}")
                 unknown = set(options) - allowed
                 if unknown:
-                    raise ConfigError(f"unknown option(s) {sorted(unknown)} for split {split!r}; allowed: {sorted(allowed)}")
+                    raise ConfigError(f"unknown option(s) {sorted(unknown)} for split {split!r}; "
+                                      f"allowed: {sorted(allowed)}")
         self.normalization = _dataclass_from(Normalization, normalization)
         self.operators = OperatorConfig.from_options(operators)
         self.validation = _dataclass_from(ValidationOptions, validation)
@@ -187,8 +190,8 @@ class ShapePairDataModule(pl.LightningDataModule):
 
         The wrapped dataset is indexed by :class:`~shapecorr.data.augmentation.SampleKey` ``(epoch, position,
         index)`` (:class:`ResumableShuffleSampler` with ``keys=True``; under several ranks
-        :class:`KeyedDistributedSampler`, position = place in the rank's shard); it runs in the DataLoader workers. Call before the training
-        loader is built (a model does it in its ``setup`` hook).
+        :class:`KeyedDistributedSampler`, position = place in the rank's shard); it runs in the DataLoader workers.
+        Call before the training loader is built (a model does it in its ``setup`` hook).
         """
         self._train_wrapper = wrapper
 
@@ -254,6 +257,7 @@ class ShapePairDataModule(pl.LightningDataModule):
                 done.add(key)
 
     def setup(self, stage: str | None = None) -> None:
+        """Build the pair datasets of every split."""
         for split in SPLITS:
             self.pairs(split)
 
@@ -286,15 +290,19 @@ class ShapePairDataModule(pl.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
+        """Shuffled loader of the training pairs."""
         return self._loader("train", shuffle=True)
 
     def val_dataloader(self) -> DataLoader:
+        """Loader of the validation pairs, in order."""
         return self._loader("val", shuffle=False)
 
     def test_dataloader(self) -> DataLoader:
+        """Loader of the test pairs, in order."""
         return self._loader("test", shuffle=False)
 
     def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
+        """Move a batch to ``device``: pairs by their own ``to``, anything else as Lightning does."""
         if isinstance(batch, (PairSample, AugmentedPair)):
             return batch.to(device)
         return super().transfer_batch_to_device(batch, device, dataloader_idx)

@@ -10,7 +10,8 @@ Folder layout (the de-facto layout of FAUST_r / SCAPE_r and of ``data_prep/make_
                              without a splits/ folder every shape belongs to every split
 
 :class:`ShapeDataset` yields one :class:`ShapeSample` per shape: the normalized :class:`Shape`, the per-shape
-operators requested (``sample.operators[name]``, :mod:`shapecorr.data.operators`) and ground truth. :class:`PairDataset` yields ordered pairs.
+operators requested (``sample.operators[name]``, :mod:`shapecorr.data.operators`) and ground truth.
+:class:`PairDataset` yields ordered pairs.
 Derived quantities come from the on-disk :class:`~shapecorr.data.cache.ShapeCache`; missing entries are
 computed by :meth:`ShapeDataset.prepare` (in parallel worker processes, with a progress bar) — the data
 module calls it before training starts, and ``data_prep/prepare.py`` calls it ahead of time.
@@ -61,8 +62,10 @@ _ROOTS_WITHOUT_SPLITS: set[str] = set()
 
 
 def _tensor(value) -> torch.Tensor:
-    """A cached array as a tensor: floats float32, integers int64, ``scipy.sparse`` as a coalesced sparse COO
-    float32 tensor; tensors pass through."""
+    """A cached array as a tensor; tensors pass through.
+
+    Floats become float32, integers int64, ``scipy.sparse`` a coalesced sparse COO float32 tensor.
+    """
     if isinstance(value, torch.Tensor):
         return value
     if sp.issparse(value):
@@ -127,14 +130,17 @@ class ShapeSample:
 
     @property
     def name(self) -> str:
+        """Name of the shape."""
         return self.shape.name
 
     @property
     def verts(self) -> torch.Tensor:
+        """Vertices ``(n, 3)`` float32 of the shape."""
         return self.shape.verts
 
     @property
     def faces(self) -> torch.Tensor:
+        """Faces ``(f, 3)`` int64 of the shape."""
         return self.shape.faces
 
     def _eigen(self, part: str) -> torch.Tensor:
@@ -161,8 +167,11 @@ class ShapeSample:
 
     @property
     def features(self) -> dict[str, torch.Tensor]:
-        """Per-vertex descriptors ``(n, c)`` by name: every operator ``name`` with an array ``name`` that is not
-        registered as a non-descriptor (e.g. ``geodesics``)."""
+        """Per-vertex descriptors ``(n, c)`` by name.
+
+        Every operator ``name`` with an array ``name`` that is not registered as a non-descriptor (e.g.
+        ``geodesics``).
+        """
         out = {}
         for name, arrays in self.operators.items():
             op = REGISTRY.get(name)
@@ -172,7 +181,8 @@ class ShapeSample:
 
     def to(self, device: torch.device | str) -> ShapeSample:
         """Copy with every tensor on ``device``."""
-        move = lambda t: None if t is None else t.to(device)
+        def move(t):
+            return None if t is None else t.to(device)
         return ShapeSample(
             shape=self.shape.to(device),
             operators={name: {k: v.to(device) for k, v in arrays.items()} for name, arrays in self.operators.items()},
@@ -193,9 +203,11 @@ class PairSample:
 
     @property
     def name(self) -> str:
+        """Name of the pair, ``<x>__<y>``."""
         return pair_name(self.x.name, self.y.name)
 
     def to(self, device: torch.device | str) -> PairSample:
+        """Copy of the pair with both samples on ``device``."""
         return PairSample(self.x.to(device), self.y.to(device))
 
 
@@ -224,7 +236,8 @@ def find_mesh_files(root: Path) -> dict[str, Path]:
     for path in sorted(mesh_dir.iterdir()):
         if path.suffix.lower() in MESH_EXTENSIONS and path.is_file():
             if path.stem in files:
-                raise DatasetError(f"two mesh files named {path.stem!r}: {files[path.stem].name} and {path.name}", mesh_dir)
+                raise DatasetError(f"two mesh files named {path.stem!r}: {files[path.stem].name} and {path.name}",
+                                   mesh_dir)
             files[path.stem] = path
         elif path.is_dir():
             skipped.append(f"{path.name}/ (a directory; sub-folders are not searched)")
@@ -278,7 +291,8 @@ def select_names(
                     f"no split file for split {split!r} (expected splits/{split}.txt, or give an index range in "
                     "the data config; a folder without splits/ puts every shape in every split)", root)
             raise DatasetError("split file does not exist", path)
-        chosen = [line.strip() for line in path.read_text(errors="surrogateescape").splitlines() if line.strip() and not line.startswith("#")]
+        chosen = [line.strip() for line in path.read_text(errors="surrogateescape").splitlines()
+                  if line.strip() and not line.startswith("#")]
         source = str(path)
     elif index_range is not None:
         start, stop = int(index_range[0]), int(index_range[1])
@@ -356,9 +370,12 @@ def sample_with_operators(
 
 def operators_with_fallback(cache: ShapeCache, shape: Shape, operators: OperatorConfig,
                             fallback: bool = True) -> dict[str, dict]:
-    """:func:`compute_operators`, using the robust Laplacian for this shape where the cotangent one has
-    infinite weights (zero-area faces) when ``fallback`` (``data.validation.laplacian_fallback``), with a
-    warning naming the file; otherwise the error names the file and both options."""
+    """:func:`compute_operators`, with the robust Laplacian as an optional fallback.
+
+    The robust Laplacian is used for this shape where the cotangent one has infinite weights (zero-area faces)
+    when ``fallback`` (``data.validation.laplacian_fallback``), with a warning naming the file; otherwise the
+    error names the file and both options.
+    """
     from shapecorr.data.validation import MeshWarning
 
     verts, faces = shape.verts.numpy(), shape.faces.numpy()
@@ -451,7 +468,8 @@ class ShapeDataset(Dataset):
         if require_corres:
             missing = [n for n, p in self._corres_paths.items() if p is None]
             if missing:
-                raise DatasetError(f"no ground truth corres/<name>.vts for {len(missing)} shape(s), e.g. {missing[0]}", self.root)
+                raise DatasetError(f"no ground truth corres/<name>.vts for {len(missing)} shape(s), e.g. {missing[0]}",
+                                   self.root)
         self._check_corres_lengths()
 
     def _corres_path(self, name: str, suffix: str) -> Path | None:
@@ -504,8 +522,11 @@ class ShapeDataset(Dataset):
         return geodesics_cached(self.cache, shape.verts.numpy(), shape.faces.numpy(), method=method)
 
     def geodesic_sources(self, i: int) -> np.ndarray:
-        """Sorted unique vertices of shape ``i`` that the evaluation needs geodesic rows from: its ground-truth
-        points (``.vts`` and ``.sym.vts``), or every vertex when it has none (identity ground truth)."""
+        """Sorted unique vertices of shape ``i`` that the evaluation needs geodesic rows from.
+
+        Its ground-truth points (``.vts`` and ``.sym.vts``), or every vertex when it has none (identity ground
+        truth).
+        """
         shape = self.load_shape(i)
         refs = [self._read_corres(p, shape) for p in (self._corres_paths[shape.name], self._sym_paths[shape.name])]
         refs = [r.numpy() for r in refs if r is not None]
@@ -646,5 +667,6 @@ class PairDataset(Dataset):
         return PairSample(self.shapes[i], self.shapes[j])
 
     def names(self, k: int) -> tuple[str, str]:
+        """Names ``(x, y)`` of the shapes of pair ``k``."""
         i, j = self.pairs[k]
         return self.shapes.names[i], self.shapes.names[j]

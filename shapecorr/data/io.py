@@ -34,7 +34,8 @@ suffix    index base   content
 ``.vts``  one-based    ground-truth vertex index per reference point (FAUST_r/SCAPE_r ``corres/``);
                        whitespace- or newline-separated; entry r of every file is the same point
 ``.map``  zero-based   point-to-point map, one target index per source vertex, one per line
-``.txt``  zero-based   point-to-point map, one per line (shapecorr's maps/<x>__<y>.txt); SHREC files are one-based: pass ``one_based=True``
+``.txt``  zero-based   point-to-point map, one per line (shapecorr's maps/<x>__<y>.txt); SHREC files are
+                       one-based: pass ``one_based=True``
 ========  ===========  ==========================================================================
 
 All readers return zero-based int64 arrays; all writers take zero-based arrays.
@@ -494,7 +495,8 @@ def read_map(
     Parameters
     ----------
     path
-        The map file (``.map``: zero-based; ``.txt``: zero-based unless one_based=True (SHREC), see :func:`read_correspondence`).
+        The map file (``.map``: zero-based; ``.txt``: zero-based unless one_based=True (SHREC), see
+        :func:`read_correspondence`).
     one_based
         The file's indices start at 1 (True) or 0 (False). None: not said; then a file that never uses
         index 0 is refused (it is most likely one-based, and reading it zero-based would shift every vertex

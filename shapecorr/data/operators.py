@@ -143,8 +143,11 @@ REGISTRY: dict[str, Operator] = {}
 
 
 def merge_by(**rules: Callable[[Any, Any], Any]) -> Callable[[Mapping[str, Any], Mapping[str, Any]], dict]:
-    """A merge rule: parameters named in ``rules`` combine with their function (e.g. ``k=max``), every other
-    parameter present in both requests must be equal; a parameter in one request only is taken as is."""
+    """A merge rule for two parameter requests.
+
+    Parameters named in ``rules`` combine with their function (e.g. ``k=max``), every other parameter present in
+    both requests must be equal; a parameter in one request only is taken as is.
+    """
 
     def merge(a: Mapping[str, Any], b: Mapping[str, Any]) -> dict:
         out = dict(a)
@@ -355,9 +358,12 @@ class OperatorConfig:
         return cls(**options)
 
     def with_request(self, request: OperatorRequest | None = None, **changes: Any) -> OperatorConfig:
-        """A copy with ``request`` merged in; ``changes`` are further ``{name: params}`` requests, ``params``
-        (dataset parameter defaults, updated), data-wide settings (``laplacian``) or the flat shorthands (``n_eig``
-        is then a lower bound, ``descriptors`` added)."""
+        """A copy with ``request`` merged in.
+
+        ``changes`` are further ``{name: params}`` requests, ``params`` (dataset parameter defaults, updated),
+        data-wide settings (``laplacian``) or the flat shorthands (``n_eig`` is then a lower bound, ``descriptors``
+        added).
+        """
         request = dict(as_request(request))
         extra_params = as_request(changes.pop("params", None), "params: ")
         settings = {k: changes.pop(k) for k in DATA_SETTINGS if k in changes}
@@ -423,6 +429,7 @@ class OperatorContext:
 
     @property
     def content_hash(self) -> str:
+        """SHA-256 of the mesh content (:func:`~shapecorr.data.cache.content_hash`), computed once."""
         if self._hash is None:
             self._hash = content_hash(self.verts, self.faces)
         return self._hash
@@ -436,8 +443,9 @@ class OperatorContext:
 
 def compute_operator(cache: ShapeCache, verts, faces, name: str, params: Mapping[str, Any],
                      _ctx: OperatorContext | None = None) -> dict[str, Any]:
-    """Operator ``name`` of one mesh with fully resolved ``params``: the exact cache entry, else a cached entry that
-    satisfies the request (restricted), else computed and stored.
+    """Operator ``name`` of one mesh with fully resolved ``params``, through the cache.
+
+    The exact cache entry, else a cached entry that satisfies the request (restricted), else computed and stored.
 
     Parameters
     ----------

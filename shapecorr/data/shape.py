@@ -75,10 +75,12 @@ class Shape:
 
     @property
     def n_verts(self) -> int:
+        """Number of vertices."""
         return int(self.verts.shape[0])
 
     @property
     def n_faces(self) -> int:
+        """Number of faces."""
         return int(self.faces.shape[0])
 
     def to(self, device: torch.device | str) -> "Shape":

@@ -1,0 +1,1 @@
+"""Evaluation: metrics, the per-pair protocol, reports, map and sequence export."""

@@ -7,8 +7,9 @@ computed from Y's faces. The cache holds, per target, the rows from its ground-t
 (``e_r = d_Y(p(gx[r]), gy[r])`` is read from row ``gy[r]``; ``R x n`` float32, never ``n x n``).
 Reference points on small islands of X or Y (connected components other than the largest) are excluded and
 counted (``n_excluded`` per pair, ``n_excluded_points`` in ``metrics.json``); a prediction that lands on an
-island of Y is scored at the nearest vertex of Y's largest component. When Y has a mirrored ground truth (``.sym.vts``) the same map is also scored
-against it; that number is reported separately and never mixed into the main error.
+island of Y is scored at the nearest vertex of Y's largest component. When Y has a mirrored ground truth
+(``.sym.vts``) the same map is also scored against it; that number is reported separately and never mixed into
+the main error.
 
 Per pair, under the output folder::
 
@@ -123,6 +124,7 @@ class PairRecord:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "PairRecord":
+        """Record from a dict (e.g. a parsed JSON line); keys that are not fields are ignored."""
         names = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in data.items() if k in names})
 
@@ -277,8 +279,11 @@ def island_points(sample, refs) -> np.ndarray:
 
 
 def _onto_main_component(y, p2p: np.ndarray) -> np.ndarray:
-    """``p2p`` with every vertex mapped onto a small island of y moved to the nearest (Euclidean) vertex of
-    y's largest component, so that its error is finite and large rather than infinite."""
+    """``p2p`` with the vertices mapped onto small islands of y moved to y's largest component.
+
+    Every vertex mapped onto a small island of y goes to the nearest (Euclidean) vertex of y's largest
+    component, so that its error is finite and large rather than infinite.
+    """
     main = _main_component(y)
     if main is None:
         return p2p
@@ -580,9 +585,11 @@ class PairEvaluator:
         self.shapes, self.matcher, self.out_dir, self.settings = shapes, matcher, Path(out_dir), settings
         self.device = torch.device(settings.device)
         self.sample = _LRU(lambda i: shapes[i], settings.sample_cache)
-        self.geodesics = _LRU(lambda j: shapes.ground_truth_geodesics(j, method=settings.geodesics), settings.geodesic_cache)
+        self.geodesics = _LRU(lambda j: shapes.ground_truth_geodesics(j, method=settings.geodesics),
+                              settings.geodesic_cache)
 
     def __call__(self, i: int, j: int) -> PairRecord:
+        """Match, score and write pair ``(i, j)`` (maps, sequence, per-pair record); return its record."""
         start = time.perf_counter()
         x, y = self.sample(i), self.sample(j)
         name = pair_name(x.name, y.name)

@@ -1,5 +1,7 @@
-"""Evaluation reports: ``metrics.json`` and ``per_pair.csv`` (the figure ``pck.png`` is drawn by
-:func:`shapecorr.viz.pck.write_pck_png`: the evaluation layer does not import the drawing layer).
+"""Evaluation reports: ``metrics.json`` and ``per_pair.csv``.
+
+The figure ``pck.png`` is drawn by :func:`shapecorr.viz.pck.write_pck_png`: the evaluation layer does not
+import the drawing layer.
 
 Aggregation conventions (documented in ``metrics.json`` itself under ``"conventions"``):
 

@@ -140,8 +140,11 @@ def _check_coeffs(coeffs: torch.Tensor) -> int:
 
 
 def _factors(points: torch.Tensor, n_modes: int, second: bool = True):
-    """Per coordinate m and mode a: ``sin(a pi x_m)``, ``a cos(a pi x_m)`` and (``second``) ``-a^2 sin(a pi
-    x_m)``, each (n, 3, K); None for the last without ``second``."""
+    """Sine/cosine features per coordinate m and mode a, each (n, 3, K).
+
+    ``sin(a pi x_m)``, ``a cos(a pi x_m)`` and (``second``) ``-a^2 sin(a pi x_m)``; None for the last without
+    ``second``.
+    """
     k = torch.arange(1, n_modes + 1, dtype=points.dtype, device=points.device)
     arg = points.unsqueeze(-1) * (math.pi * k)
     sin = torch.sin(arg)
@@ -269,20 +272,20 @@ def velocity_jacobian(
     blocks = []
     for s in _chunks(points.shape[0], chunk_size):
         sin, dcos, d2 = _factors(points[s], k)
-        entries = {}  # (j, l) -> (n, d): d_j d_l Phi_d
+        entries = {}  # (j, q) -> (n, d): d_j d_q Phi_d
         for j in range(3):
-            for l in range(j, 3):
+            for q in range(j, 3):
                 fac = []
                 for m in range(3):
-                    order = (m == j) + (m == l)
+                    order = (m == j) + (m == q)
                     fac.append(sin[:, m] if order == 0 else dcos[:, m] if order == 1 else d2[:, m])
                 # The second derivative carries one more factor pi than the gradient (module docstring).
-                entries[(j, l)] = math.pi * _contract(fac[0], fac[1], fac[2], pot)
+                entries[(j, q)] = math.pi * _contract(fac[0], fac[1], fac[2], pot)
         hess = torch.stack(
-            [torch.stack([entries[(min(j, l), max(j, l))] for l in range(3)], dim=1) for j in range(3)], dim=1
-        )  # (n, j, l, d)
-        # J[i, l] = eps_ijd d_l d_j Phi_d: the curl taken over (j, d) for each l.
-        blocks.append(_curl(hess.permute(0, 2, 1, 3)).transpose(1, 2))  # (n, l, i) -> (n, i, l)
+            [torch.stack([entries[(min(j, q), max(j, q))] for q in range(3)], dim=1) for j in range(3)], dim=1
+        )  # (n, j, q, d)
+        # J[i, q] = eps_ijd d_q d_j Phi_d: the curl taken over (j, d) for each q.
+        blocks.append(_curl(hess.permute(0, 2, 1, 3)).transpose(1, 2))  # (n, q, i) -> (n, i, q)
     return torch.cat(blocks, dim=0) if blocks else points.new_zeros(0, 3, 3)
 
 
@@ -310,7 +313,8 @@ def basis_fields(points: torch.Tensor, n_modes: int = PUBLISHED_N_MODES, convent
     sin, dcos, _ = _factors(points, k)
     sx, sy, sz = sin[:, 0], sin[:, 1], sin[:, 2]
     cx, cy, cz = dcos[:, 0], dcos[:, 1], dcos[:, 2]
-    outer = lambda fa, fb, fc: fa[:, :, None, None] * fb[:, None, :, None] * fc[:, None, None, :]
+    def outer(fa, fb, fc):
+        return fa[:, :, None, None] * fb[:, None, :, None] * fc[:, None, None, :]
     grad = torch.stack((outer(cx, sy, sz), outer(sx, cy, sz), outer(sx, sy, cz)), dim=-1)  # (n, K, K, K, 3_j)
     grad = grad.reshape(points.shape[0], k**3, 3)
     # grad(psi) x e_d for d = 0, 1, 2: (n, K^3, 3_d, 3_i)

@@ -321,6 +321,7 @@ class SourceDistances:
 
     @property
     def n_verts(self) -> int:
+        """Number of vertices of the shape (columns of the rows)."""
         return int(self.rows.shape[1])
 
     def row_index(self, vertices) -> np.ndarray:

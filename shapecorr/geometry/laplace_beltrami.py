@@ -369,9 +369,12 @@ def _count_below(A, x: float) -> int:
 
 
 class _ShiftInvert:
-    """Shift-invert operator ``(A - sigma I)^-1`` from a sparse LDL^T (symmetric fill-reducing ordering; no
-    pivoting is accurate for shifted Laplacians in practice, and the residual check guards it), optionally
-    restricted to the orthogonal complement of known eigenvectors (deflation)."""
+    """Shift-invert operator ``(A - sigma I)^-1`` from a sparse LDL^T.
+
+    Symmetric fill-reducing ordering; no pivoting is accurate for shifted Laplacians in practice, and the
+    residual check guards it. Optionally restricted to the orthogonal complement of known eigenvectors
+    (deflation).
+    """
 
     def __init__(self, A, sigma: float):
         self.A, self.sigma, self.n = A, sigma, A.shape[0]

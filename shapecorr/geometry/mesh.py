@@ -18,8 +18,9 @@ MAX_LISTED_INDICES = 5
 
 
 def as_numpy(a, dtype=None) -> np.ndarray:
-    """numpy view of an array or of a torch tensor (any device, grad-tracking or not: detached, copied to the
-    CPU), without importing torch here.
+    """NumPy view of an array or of a torch tensor, without importing torch here.
+
+    Tensors on any device, grad-tracking or not, are detached and copied to the CPU.
 
     Parameters
     ----------

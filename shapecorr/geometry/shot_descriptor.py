@@ -327,8 +327,10 @@ def _histograms(
     azimuth_wrap: int,
     wrap_cosine: bool,
 ) -> np.ndarray:
-    """Normalized SHOT rows (n, 32 (n_bins + 1)) float32 from the frames (n, 3, 3) and the support pairs
-    (sorted by centre ``i``)."""
+    """Normalized SHOT rows (n, 32 (n_bins + 1)) float32.
+
+    From the frames (n, 3, 3) and the support pairs (sorted by centre ``i``).
+    """
     n = v.shape[0]
     length = N_SECTORS * (n_bins + 1)
     described = has_frame & (np.bincount(i, minlength=n) >= min_neighbors)
@@ -369,8 +371,10 @@ def _histogram_block(
     azimuth_wrap: int,
     wrap_cosine: bool,
 ) -> np.ndarray:
-    """Unnormalized histograms (n_rows, 32 (n_bins + 1)) float64 of the centres first .. first + n_rows - 1,
-    from their pairs (i, j) at distances d."""
+    """Unnormalized histograms (n_rows, 32 (n_bins + 1)) float64.
+
+    Of the centres first .. first + n_rows - 1, from their pairs (i, j) at distances d.
+    """
     slots = n_bins + 1
     length = N_SECTORS * slots
     q = v[j] - v[i]

@@ -1,0 +1,1 @@
+"""Unsupervised loss terms (registration, ARAP, geodesic distortion) and WeightedLoss."""

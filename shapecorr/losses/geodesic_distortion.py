@@ -68,8 +68,10 @@ def _panels(n: int, block: int) -> list[tuple[int, int]]:
 
 
 class _GeodesicDistortionSymmetric(torch.autograd.Function):
-    """Fast path: symmetric ``D_y`` and ``D_x`` (module docstring). ``const`` is ``sum(K^2)`` of a
-    symmetrized ``D_x`` (0 otherwise)."""
+    """Fast path: symmetric ``D_y`` and ``D_x`` (module docstring).
+
+    ``const`` is ``sum(K^2)`` of a symmetrized ``D_x`` (0 otherwise).
+    """
 
     @staticmethod
     def forward(ctx, pi, dist_x, dist_y, const: float, block: int):

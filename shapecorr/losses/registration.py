@@ -66,7 +66,8 @@ def registration_loss(
     if soft_target is None:
         soft_target = pi_x_to_y @ verts_y
     elif soft_target.shape != verts_x_deformed.shape:
-        raise ConfigError(f"soft_target must have shape {tuple(verts_x_deformed.shape)}, got {tuple(soft_target.shape)}")
+        raise ConfigError(f"soft_target must have shape {tuple(verts_x_deformed.shape)}, "
+                          f"got {tuple(soft_target.shape)}")
     term_x = (soft_target - verts_x_deformed).square().sum()
     term_y = (verts_y - pi_y_to_x @ verts_x_deformed).square().sum()
     if reduction == "original":

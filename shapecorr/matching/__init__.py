@@ -1,0 +1,1 @@
+"""Matching: Sinkhorn, least squares, the Deep Shells layer, softmax correspondences, baselines, MatchResult."""

@@ -1,5 +1,7 @@
-"""Matchers that need no training: the evaluation's self-check, a descriptor baseline, maps from files, and
-the linear-blend interpolation around any of them.
+"""Matchers that need no training.
+
+The evaluation's self-check, a descriptor baseline, maps from files, and the linear-blend interpolation
+around any of them.
 
 All implement the matcher protocol of :mod:`shapecorr.matching.result` and are usable as
 ``evaluate.py model=identity_gt|descriptor_nn|linear_blend`` (``PrecomputedMaps`` backs
@@ -235,6 +237,7 @@ class LinearBlend(torch.nn.Module):
 
     @property
     def needs_ground_truth(self) -> bool:
+        """Whether the wrapped matcher needs the ground truth."""
         return bool(getattr(self.matcher, "needs_ground_truth", False))
 
     @staticmethod

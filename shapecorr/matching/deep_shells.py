@@ -237,10 +237,12 @@ class SpectralShape:
 
     @property
     def n_verts(self) -> int:
+        """Number of vertices."""
         return int(self.verts.shape[0])
 
     @property
     def n_eigs(self) -> int:
+        """Number of eigenfunctions."""
         return int(self.evecs.shape[1])
 
     def to(self, device: torch.device | str) -> "SpectralShape":

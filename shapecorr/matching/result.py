@@ -126,4 +126,5 @@ class Matcher(Protocol):
     """Anything that maps an ordered pair of shapes (see the module docstring)."""
 
     def match(self, x: "ShapeSample", y: "ShapeSample") -> MatchResult:  # pragma: no cover - protocol
+        """Map ``x`` to ``y``: a MatchResult with ``p2p (n_x,)`` int64 indices into ``y``."""
         ...

@@ -305,7 +305,8 @@ def build_shape_graph(costs, variant: str = "full", tsp_seed: int = TSP_SEED) ->
 def _as_map(m) -> torch.Tensor:
     t = torch.as_tensor(m)
     if t.ndim != 1 or t.dtype.is_floating_point or t.dtype == torch.bool:
-        raise CorrespondenceError(f"point-to-point maps must be 1-D integer arrays, got {t.dtype} of shape {tuple(t.shape)}")
+        raise CorrespondenceError(f"point-to-point maps must be 1-D integer arrays, "
+                                  f"got {t.dtype} of shape {tuple(t.shape)}")
     return t.long()
 
 

@@ -118,17 +118,20 @@ def softmax_soft_maps(
 
 
 def _min_safe_sum(n: int, dtype: torch.dtype) -> float:
-    """Smallest row/column sum of ``E`` for which the shared-shift softmax keeps full precision (module
-    docstring): the largest entry is then at least ``tiny / eps``, so entries down to ``eps`` times it are
-    normal numbers."""
+    """Smallest row/column sum of ``E`` for which the shared-shift softmax keeps full precision.
+
+    See the module docstring: the largest entry is then at least ``tiny / eps``, so entries down to ``eps``
+    times it are normal numbers.
+    """
     info = torch.finfo(dtype)
     return n * info.tiny / info.eps
 
 
 class _SoftmaxBothWays(torch.autograd.Function):
-    """``Pi = softmax_rows(sigma F_x F_y^T)`` and ``Pi_inv = softmax_rows(sigma F_y F_x^T)`` from one
-    exponential (module docstring); returns None (nothing to differentiate) when the shared shift would
-    underflow a row or a column.
+    """``Pi`` and ``Pi_inv`` from one exponential (module docstring).
+
+    ``Pi = softmax_rows(sigma F_x F_y^T)`` and ``Pi_inv = softmax_rows(sigma F_y F_x^T)``; returns None (nothing
+    to differentiate) when the shared shift would underflow a row or a column.
 
     Backward, with ``Q = Pi_inv^T`` and upstream gradients ``G1 (n_x, n_y)``, ``G2 (n_y, n_x)``:
     ``dL/d(sigma S) = Pi * (G1 - rowdot(G1, Pi)) + Q * (G2^T - coldot(G2^T, Q))``, then

@@ -1,0 +1,1 @@
+"""LightningModules (backbone + matcher + loss + logging), optimizer factories and epoch schedules."""

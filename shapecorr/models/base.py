@@ -56,8 +56,11 @@ def adam(lr: float) -> OptimizerFactory:
 
 
 def as_factory(value: Any, what: str = "optimizer") -> Callable | None:
-    """An optimizer/scheduler factory from a ``_partial_: true`` node (a mapping, e.g. from a checkpoint's
-    hyperparameters), an already built factory (passed through) or None."""
+    """An optimizer/scheduler factory from a ``_partial_: true`` node, a factory or None.
+
+    The node is a mapping, e.g. from a checkpoint's hyperparameters; an already built factory is passed
+    through.
+    """
     if value is None or callable(value):
         return value
     from omegaconf import DictConfig
@@ -74,9 +77,12 @@ def as_factory(value: Any, what: str = "optimizer") -> Callable | None:
 
 
 def factory_node(factory: Callable | None) -> dict | None:
-    """The ``_partial_: true`` node of a factory built by :func:`as_factory` / Hydra (``functools.partial`` of
-    an importable callable with keyword arguments), for checkpoints' hyperparameters; None for None or a factory
-    that has no such form (a checkpoint then needs the factory passed to ``load_from_checkpoint``)."""
+    """The ``_partial_: true`` node of a factory built by :func:`as_factory` / Hydra.
+
+    The factory is a ``functools.partial`` of an importable callable with keyword arguments; the node is for
+    checkpoints' hyperparameters. None for None or a factory that has no such form (a checkpoint then needs
+    the factory passed to ``load_from_checkpoint``).
+    """
     if not isinstance(factory, functools.partial) or factory.args:
         return None
     func = factory.func
@@ -99,7 +105,8 @@ def build_optimizers(
     parameters
         The trainable parameters (those with ``requires_grad``; an empty list returns ``None``: nothing to learn).
     optimizer
-        Optimizer factory, e.g. the ``model.optimizer`` node ``{_target_: torch.optim.Adam, _partial_: true, lr: 1e-4}``.
+        Optimizer factory, e.g. the ``model.optimizer`` node
+        ``{_target_: torch.optim.Adam, _partial_: true, lr: 1e-4}``.
     scheduler
         Optional LR-scheduler factory (``model.scheduler`` node), stepped every ``scheduler_interval``
         (``"epoch"`` or ``"step"``).
@@ -162,20 +169,25 @@ class CorrespondenceModule(pl.LightningModule):
         return {"result": result, **scores}
 
     def validation_step(self, batch, batch_idx: int):
+        """Score the validation pair's map (logged); keep the first pair for the figure."""
         out = self._evaluate_pair(batch, "val")
         if batch_idx == 0:
             self._first_val_pair = (batch, out["result"].p2p)
 
     def test_step(self, batch, batch_idx: int):
+        """Score the test pair's map (logged)."""
         self._evaluate_pair(batch, "test")
 
     def on_validation_epoch_start(self) -> None:
+        """Reset the validation errors of the epoch."""
         self._eval_errors["val"] = []
 
     def on_test_epoch_start(self) -> None:
+        """Reset the test errors of the epoch."""
         self._eval_errors["test"] = []
 
     def on_validation_epoch_end(self) -> None:
+        """Log the pairs seen (when fitting), the PCK AUC of the validation errors, and (rank 0) the figures."""
         trainer = self._trainer
         if trainer is not None and trainer.state.fn == "fit" and not trainer.sanity_checking:
             # x-axis of learning curves: training pairs (batches x ranks) seen so far, exact also mid-epoch and

@@ -1,5 +1,6 @@
-"""Deep Shells as a LightningModule: a backbone (spectral filter bank on SHOT) -> hierarchical OT layer -> mean
-level energy.
+"""Deep Shells as a LightningModule.
+
+A backbone (spectral filter bank on SHOT) -> hierarchical OT layer -> mean level energy.
 
 Eisenberger, Toker, Leal-Taixé, Cremers, NeurIPS 2020 (docs/deep_shells.md). The module is thin: the features come
 from the injected backbone (:mod:`shapecorr.nn.backbone`; ``configs/model/backbone/``: ``spectral_conv`` =
@@ -195,7 +196,8 @@ class DeepShells(CorrespondenceModule):
             backbone = _legacy_backbone(backbone, legacy)
         if "lr" in legacy:
             if optimizer is not None:
-                raise ConfigError("deep_shells: give the learning rate as model.optimizer.lr, not both lr and optimizer")
+                raise ConfigError("deep_shells: give the learning rate as model.optimizer.lr, "
+                                  "not both lr and optimizer")
             warnings.warn("deep_shells: option 'lr' (old checkpoint/config) is mapped to model.optimizer.lr",
                           FutureWarning, stacklevel=2)
             optimizer = adam(float(legacy["lr"]))
@@ -300,6 +302,7 @@ class DeepShells(CorrespondenceModule):
                               f"in/out_channels, hidden_channels, num_basis): {exc}", path=path) from None
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
+        """Record the path of the pretrained weights loaded (if any) in the checkpoint."""
         if self.pretrained is not None:
             checkpoint[PRETRAINED_CHECKPOINT_KEY] = self.pretrained
 
@@ -335,6 +338,10 @@ class DeepShells(CorrespondenceModule):
 
     # -- training ---------------------------------------------------------------------------------------------
     def training_step(self, batch, batch_idx: int) -> torch.Tensor:
+        """Mean weighted level energy of the Deep Shells layer on random vertex samples of the pair.
+
+        Logs the loss and the energy of each level; raises NumericalError when the loss is not finite.
+        """
         x, y = batch.x, batch.y
         gen = self.sample_generator(batch_idx)
         num = self.config.num_samples
@@ -355,15 +362,18 @@ class DeepShells(CorrespondenceModule):
         return loss
 
     def configure_optimizers(self):
+        """Optimizer (and scheduler) from the ``optimizer`` / ``scheduler`` factories."""
         # None for a backbone without parameters (the identity ablation has nothing to learn)
         return build_optimizers(self.parameters(), self.optimizer, self.scheduler, self.scheduler_interval)
 
     def on_fit_start(self) -> None:
+        """Refuse to fit a backbone without trainable parameters (ConfigError)."""
         if not any(p.requires_grad for p in self.parameters()):
             raise ConfigError(f"deep_shells: the {type(self.backbone).__name__} backbone has no parameters to train; "
                               "evaluate it without training (evaluate.py model=deep_shells_ablation)")
 
     def validation_step(self, batch, batch_idx: int):
+        """Score the validation pair, with the cheaper refinement (``val_refine_levels``) while fitting."""
         self._validating_during_fit = self._trainer is not None and self._trainer.state.fn == "fit"
         try:
             return super().validation_step(batch, batch_idx)

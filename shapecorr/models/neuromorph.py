@@ -27,8 +27,8 @@ weight). The augmentation runs on the data side: in its ``setup`` hook the modul
 :class:`~shapecorr.data.augmentation.AugmentedPairDataset` wrapper (DataLoader workers remesh in parallel);
 a plain :class:`~shapecorr.data.datasets.PairSample` batch (another loader, direct calls) is augmented in
 ``training_step`` with the same draws. The draws are seeded by ``(seed, epoch, batch index)``, so a resumed
-run sees the augmentations of the uninterrupted one. Without remeshing, shapes larger than ``query_resolution`` are trained on their
-working-resolution remesh (the original trained on 2000-vertex FAUST_r meshes).
+run sees the augmentations of the uninterrupted one. Without remeshing, shapes larger than ``query_resolution``
+are trained on their working-resolution remesh (the original trained on 2000-vertex FAUST_r meshes).
 
 Queries (:meth:`NeuroMorph.match`, :meth:`NeuroMorph.interpolate`) run on the shapes as given, or, with
 ``query_resolution`` set and a shape larger than that, on a cached remesh with that many vertices (published
@@ -391,6 +391,7 @@ class NeuroMorph(CorrespondenceModule):
 
     @property
     def augmenter(self) -> PairAugmenter:
+        """The pair augmenter, built on first use from the augment options and the shape cache."""
         if self._augmenter is None:
             self._augmenter = PairAugmenter(self.augment, self.shape_cache(), max_vertices=self.query_resolution,
                                             seed=self.seed, geodesics=self.geodesics)
@@ -447,14 +448,21 @@ class NeuroMorph(CorrespondenceModule):
                 "edge_counts": counts_x}
 
     def features(self, sample, edges: torch.Tensor | None = None) -> torch.Tensor:
-        """Backbone features ``(n, C)`` of a sample; its undirected ``edges (E, 2)``, when the caller has them, go
-        to a backbone that takes them (:class:`EdgeConvBackbone`: saves recomputing them)."""
+        """Backbone features ``(n, C)`` of a sample.
+
+        Its undirected ``edges (E, 2)``, when the caller has them, go to a backbone that takes them
+        (:class:`EdgeConvBackbone`: saves recomputing them).
+        """
         if edges is not None and self._backbone_takes_edges:
             return self.feature_net(sample, edges=edges)
         return self.feature_net(sample)
 
     # -- training -----------------------------------------------------------------------------------------
     def training_step(self, batch, batch_idx: int) -> torch.Tensor:
+        """Loss of one (augmented) training pair: interpolate x towards y and log the loss terms and schedules.
+
+        Raises NumericalError when the loss is not finite.
+        """
         use_geo = self.lambda_geo != 0.0
         if isinstance(batch, AugmentedPair):  # augmented on the data side (AugmentedPairDataset)
             aug = batch
@@ -495,6 +503,7 @@ class NeuroMorph(CorrespondenceModule):
         return total
 
     def configure_optimizers(self):
+        """Optimizer (and scheduler) from the ``optimizer`` / ``scheduler`` factories."""
         return build_optimizers(self.parameters(), self.optimizer, self.scheduler)
 
     # -- queries ------------------------------------------------------------------------------------------
@@ -587,6 +596,7 @@ class NeuroMorph(CorrespondenceModule):
                 self.log(f"{split}/{key}", float(scores[key]), **log)
 
     def validation_step(self, batch, batch_idx: int):
+        """Score the validation pair's map and interpolation; keep the first pair's sequence for logging."""
         out = self._evaluate_pair(batch, "val")
         result = out["result"]
         if batch_idx == 0:
@@ -595,10 +605,12 @@ class NeuroMorph(CorrespondenceModule):
         self._score_interpolation(batch, result, "val")
 
     def test_step(self, batch, batch_idx: int):
+        """Score the test pair's map and interpolation."""
         out = self._evaluate_pair(batch, "test")
         self._score_interpolation(batch, out["result"], "test")
 
     def on_validation_epoch_end(self) -> None:
+        """Log as the base model does, then (rank 0) the first validation pair's interpolation."""
         super().on_validation_epoch_end()
         if self.trainer.sanity_checking or self.global_rank != 0 or self._first_val_sequence is None:
             return

@@ -70,6 +70,7 @@ class PiecewiseConstant:
         self.values = [v for _, v in pairs]
 
     def __call__(self, epoch: int) -> Any:
+        """Value at ``epoch`` (that of the last milestone at or before it)."""
         if epoch < 0:
             raise ConfigError(f"epoch must be >= 0, got {epoch}")
         return self.values[bisect.bisect_right(self.epochs, int(epoch)) - 1]
@@ -100,10 +101,12 @@ class EpochSchedule(pl.Callback):
 
     @property
     def state_key(self) -> str:
+        """Callback state key, distinct per target."""
         # Several schedules of one class may coexist in a Trainer: make their keys distinct.
         return self._generate_state_key(target=self.target)
 
     def value_at(self, epoch: int) -> Any:
+        """Scheduled value at ``epoch``."""
         return self.schedule(epoch)
 
     def set_value(self, pl_module: pl.LightningModule, value: Any) -> None:
@@ -124,9 +127,11 @@ class EpochSchedule(pl.Callback):
         return value
 
     def on_train_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        """Set the value of the starting epoch (also on resume)."""
         self.apply(pl_module, trainer.current_epoch)
 
     def on_train_epoch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        """Set the value of the epoch and log it under ``log_name`` if given."""
         value = self.apply(pl_module, trainer.current_epoch)
         if self.log_name:
             pl_module.log(self.log_name, float(value), on_step=False, on_epoch=True, batch_size=1)
@@ -155,6 +160,7 @@ class LossWeightSchedule(EpochSchedule):
         self.loss_attribute = loss_attribute
 
     def set_value(self, pl_module: pl.LightningModule, value: Any) -> None:
+        """Set the weight of the loss term ``term`` (the module's loss must be a WeightedLoss)."""
         loss = getattr(pl_module, self.loss_attribute, None)
         if loss is None or not hasattr(loss, "set_weight"):
             raise ConfigError(f"{type(pl_module).__name__}.{self.loss_attribute} is not a WeightedLoss (no "

@@ -51,8 +51,10 @@ class Backbone(nn.Module):
 
 
 def backbone_node(module: nn.Module) -> dict[str, Any] | None:
-    """The ``_target_`` node that rebuilds ``module`` (``hydra.utils.instantiate``), or None when it does not
-    record its constructor arguments (:attr:`Backbone.init_args`)."""
+    """The ``_target_`` node that rebuilds ``module`` (``hydra.utils.instantiate``).
+
+    None when it does not record its constructor arguments (:attr:`Backbone.init_args`).
+    """
     args = getattr(module, "init_args", None)
     if args is None:
         return None

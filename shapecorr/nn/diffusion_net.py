@@ -1,5 +1,7 @@
-"""DiffusionNet (Sharp, Attaiki, Crane & Ovsjanikov, "DiffusionNet: Discretization Agnostic Learning on
-Surfaces", ACM ToG 2022) and its backbone.
+"""DiffusionNet and its backbone.
+
+Sharp, Attaiki, Crane & Ovsjanikov, "DiffusionNet: Discretization Agnostic Learning on Surfaces", ACM ToG
+2022.
 
 The network maps per-vertex input features ``x (n, C_in)`` to per-vertex features ``(n, C_out)``:
 
@@ -274,7 +276,8 @@ class DiffusionNet(nn.Module):
                 f"evecs {tuple(evecs.shape)}, mass {tuple(mass.shape)}"
             )
         if tuple(grad_x.shape) != (n, n) or tuple(grad_y.shape) != (n, n):
-            raise ConfigError(f"gradient operators must be ({n}, {n}), got {tuple(grad_x.shape)}, {tuple(grad_y.shape)}")
+            raise ConfigError(f"gradient operators must be ({n}, {n}), "
+                              f"got {tuple(grad_x.shape)}, {tuple(grad_y.shape)}")
         h = self.first_lin(x)
         for block in self.blocks:
             h = block(h, evals, evecs, mass, grad_x, grad_y)

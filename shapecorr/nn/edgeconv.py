@@ -260,8 +260,9 @@ class _GatherMax(torch.autograd.Function):
 
 
 class _MessagesMax(torch.autograd.Function):
-    """The per-edge half of the fast EdgeConv, fused: from per-vertex and per-edge pre-activations to the
-    max-aggregated messages, with a hand-written backward.
+    """The per-edge half of the fast EdgeConv, fused, with a hand-written backward.
+
+    From per-vertex and per-edge pre-activations to the max-aggregated messages.
 
     ``out[r] = max_{k: receivers[k] = r} (neigh[senders[k]] + W1 relu(pre_vertex[receivers[k]] + edge[k mod E]))``
 

@@ -1,0 +1,1 @@
+"""Visualization: headless renders, PCK figures, TensorBoard meshes."""

@@ -52,7 +52,10 @@ def pck_figure(curves: Mapping[str, tuple[np.ndarray, np.ndarray, float]], title
 
 
 def write_pck_png(path: str | os.PathLike, metrics_dict: Mapping[str, Any], label: str = "map") -> Path:
-    """Write ``pck.png`` from a :func:`shapecorr.eval.reports.aggregate` result (plus the symmetric curve when present)."""
+    """Write ``pck.png`` from a :func:`shapecorr.eval.reports.aggregate` result.
+
+    The symmetric curve is drawn too when present.
+    """
     pck = metrics_dict["pck"]
     curves = {label: (np.asarray(pck["thresholds"]), np.asarray(pck["fractions"]), metrics_dict["mean_geodesic_error"])}
     if "pck_sym" in metrics_dict:

@@ -30,7 +30,8 @@ def folder(tmp_path_factory):
     rng = np.random.default_rng(0)
     names = [f"shape_{i:03d}" for i in range(N_SHAPES)]
     for i, name in enumerate(names):
-        verts = base.vertices * np.array([1.0 + 0.2 * i, 1.0, 1.0 - 0.1 * i]) + rng.normal(0, 1e-3, (len(base.vertices), 3))
+        verts = (base.vertices * np.array([1.0 + 0.2 * i, 1.0, 1.0 - 0.1 * i])
+                 + rng.normal(0, 1e-3, (len(base.vertices), 3)))
         write_mesh(root / "off" / f"{name}.off", verts, base.faces)
         write_vts(root / "corres" / f"{name}.vts", np.arange(N_REF))
     (root / "splits" / "train.txt").write_text("\n".join(names[:3]) + "\n")

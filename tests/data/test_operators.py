@@ -117,4 +117,5 @@ def test_sample_views_match_the_operators(tmp_path, mesh):
     assert torch.equal(sample.evals, torch.from_numpy(arrays["eigenbasis"]["evals"]))
     assert list(sample.features) == ["hks"] and sample.features["hks"].shape[0] == len(mesh[0])
     legacy = ShapeSample(sample.shape, sample.evals, sample.evecs, sample.mass, features={"shot": sample.mass[:, None]})
-    assert set(legacy.operators) == {"eigenbasis", "shot"} and torch.equal(legacy.features["shot"], sample.mass[:, None])
+    assert set(legacy.operators) == {"eigenbasis", "shot"}
+    assert torch.equal(legacy.features["shot"], sample.mass[:, None])

@@ -46,7 +46,8 @@ def ply_binary_truncated() -> bytes:
     return data[:-7]
 
 
-def obj(verts: str = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n", faces: str = "f 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n") -> str:
+def obj(verts: str = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n",
+        faces: str = "f 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n") -> str:
     return verts + faces
 
 
@@ -93,14 +94,22 @@ CASES = [
     ("off-nan-coordinate", "nan.off", off(verts="0 0 0\n1 nan 0\n0 1 0\n0 0 1\n"), mesh_reader, InvalidMeshError),
     ("off-inf-coordinate", "inf.off", off(verts="0 0 0\n1 0 0\n0 1 -inf\n0 0 1\n"), mesh_reader, InvalidMeshError),
     ("ply-inf-coordinate", "inf.ply", ply_ascii(verts="inf 0 0\n1 0 0\n0 1 0\n0 0 1\n"), mesh_reader, InvalidMeshError),
-    ("obj-nan-coordinate", "nan.obj", obj(verts="v 0 0 0\nv nan 0 0\nv 0 1 0\nv 0 0 1\n"), mesh_reader, InvalidMeshError),
-    ("off-index-out-of-range", "oob.off", off(faces="3 0 2 1\n3 0 1 3\n3 1 2 3\n3 0 3 4\n"), mesh_reader, InvalidMeshError),
-    ("ply-index-out-of-range", "oob.ply", ply_ascii(faces="3 0 2 1\n3 0 1 3\n3 1 2 3\n3 0 3 9\n"), mesh_reader, InvalidMeshError),
-    ("off-negative-index", "neg.off", off(faces="3 0 2 1\n3 0 1 3\n3 1 2 3\n3 0 -1 2\n"), mesh_reader, InvalidMeshError),
-    ("ply-negative-index", "neg.ply", ply_ascii(faces="3 0 2 1\n3 0 1 3\n3 1 2 3\n3 0 -1 2\n"), mesh_reader, InvalidMeshError),
-    ("obj-index-out-of-range", "oob.obj", obj(faces="f 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 9\n"), mesh_reader, MeshReadError),
-    ("off-repeated-index-face", "rep.off", off(faces="3 0 2 1\n3 0 1 3\n3 1 2 3\n3 0 3 3\n"), mesh_reader, InvalidMeshError),
-    ("off-zero-area-face", "flat.off", off(verts="0 0 0\n1 0 0\n0 1 0\n0 0 1\n2 0 0\n", faces=TETRA_FACES + "3 0 1 4\n"),
+    ("obj-nan-coordinate", "nan.obj", obj(verts="v 0 0 0\nv nan 0 0\nv 0 1 0\nv 0 0 1\n"),
+     mesh_reader, InvalidMeshError),
+    ("off-index-out-of-range", "oob.off", off(faces="3 0 2 1\n3 0 1 3\n3 1 2 3\n3 0 3 4\n"),
+     mesh_reader, InvalidMeshError),
+    ("ply-index-out-of-range", "oob.ply", ply_ascii(faces="3 0 2 1\n3 0 1 3\n3 1 2 3\n3 0 3 9\n"),
+     mesh_reader, InvalidMeshError),
+    ("off-negative-index", "neg.off", off(faces="3 0 2 1\n3 0 1 3\n3 1 2 3\n3 0 -1 2\n"),
+     mesh_reader, InvalidMeshError),
+    ("ply-negative-index", "neg.ply", ply_ascii(faces="3 0 2 1\n3 0 1 3\n3 1 2 3\n3 0 -1 2\n"),
+     mesh_reader, InvalidMeshError),
+    ("obj-index-out-of-range", "oob.obj", obj(faces="f 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 9\n"),
+     mesh_reader, MeshReadError),
+    ("off-repeated-index-face", "rep.off", off(faces="3 0 2 1\n3 0 1 3\n3 1 2 3\n3 0 3 3\n"),
+     mesh_reader, InvalidMeshError),
+    ("off-zero-area-face", "flat.off",
+     off(verts="0 0 0\n1 0 0\n0 1 0\n0 0 1\n2 0 0\n", faces=TETRA_FACES + "3 0 1 4\n"),
      mesh_reader, InvalidMeshError),
     ("off-unreferenced-vertex", "unref.off", off(verts=TETRA_VERTS + "5 5 5\n"), mesh_reader, InvalidMeshError),
     ("off-point-cloud", "cloud.off", "OFF\n4 0 0\n" + TETRA_VERTS, mesh_reader, MeshReadError),
@@ -121,7 +130,8 @@ CASES = [
     ("map-two-columns", "pairs.map", "0 1\n1 2\n", map_reader(), CorrespondenceError),
     ("map-non-integer", "float.map", "0\n1.0\n", map_reader(), CorrespondenceError),
     ("map-empty", "empty.map", "", map_reader(), CorrespondenceError),
-    ("txt-map-one-based-zero", "shrec.txt", "1\n0\n2\n", lambda p: read_correspondence(p, one_based=True), CorrespondenceError),
+    ("txt-map-one-based-zero", "shrec.txt", "1\n0\n2\n", lambda p: read_correspondence(p, one_based=True),
+     CorrespondenceError),
     ("unknown-correspondence-extension", "map.csv", "0\n1\n", lambda p: read_correspondence(p), CorrespondenceError),
     ("vts-different-lengths", "a.vts", "1 2 3 4 5\n", lengths_checker, CorrespondenceError),
 ]

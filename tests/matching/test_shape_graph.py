@@ -174,7 +174,8 @@ def test_compose_all_with_exact_pairwise_maps_is_exact_and_reports_unreachable_p
     costs = costs_from_pairs(n, pairs, np.linspace(1.0, 2.0, len(pairs)))
     g = build_shape_graph(costs, "full")
     out = compose_all(g, maps)
-    assert sorted(out.unreachable) == sorted((i, j) for i, j in itertools.permutations(range(n), 2) if (i < 3) != (j < 3))
+    assert sorted(out.unreachable) == sorted((i, j) for i, j in itertools.permutations(range(n), 2)
+                                             if (i < 3) != (j < 3))
     assert set(out.maps) == set(pairs)
     for (s, t), m in out.maps.items():
         shared = set(map(int, labels[s])) & set(map(int, labels[t]))
@@ -257,7 +258,8 @@ def test_tree_composed_maps_are_cycle_consistent_where_direct_maps_are_not():
 def test_compose_all_equals_composing_each_path_on_long_tree_paths():
     rng = np.random.default_rng(8)
     n, sizes = 9, rng.integers(5, 12, 9)
-    maps = {(i, j): (torch.from_numpy(rng.integers(0, sizes[j], sizes[i])), torch.from_numpy(rng.integers(0, sizes[i], sizes[j])))
+    maps = {(i, j): (torch.from_numpy(rng.integers(0, sizes[j], sizes[i])),
+                     torch.from_numpy(rng.integers(0, sizes[i], sizes[j])))
             for i, j in itertools.permutations(range(n), 2)}
     g = build_shape_graph(_random_costs(n, 9), "mst")
     out = compose_all(g, maps)

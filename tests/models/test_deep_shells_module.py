@@ -102,7 +102,8 @@ def test_level_weights_select_levels(pair):
 
 def test_sample_generator_depends_on_seed_epoch_batch():
     model = small()
-    draw = lambda m, b: torch.randint(0, 10**6, (5,), generator=m.sample_generator(b))
+    def draw(m, b):
+        return torch.randint(0, 10**6, (5,), generator=m.sample_generator(b))
     assert torch.equal(draw(model, 4), draw(model, 4))
     assert not torch.equal(draw(model, 4), draw(model, 5))
     assert not torch.equal(draw(model, 4), draw(small(seed=1), 4))
@@ -231,7 +232,8 @@ def test_configs_compose_and_instantiate(tmp_path, compose_config):
     ablation = instantiate(compose_config("evaluate", ["model=deep_shells_ablation"]).model, _convert_="object")
     assert isinstance(ablation.backbone, IdentityBackbone) and ablation.refine
     for name in ("evaluate", "train"):
-        ev = instantiate(compose_config(name, ["model=deep_shells", "model/backbone=identity"]).model, _convert_="object")
+        ev_cfg = compose_config(name, ["model=deep_shells", "model/backbone=identity"])
+        ev = instantiate(ev_cfg.model, _convert_="object")
         assert isinstance(ev.backbone, IdentityBackbone) and not ev.backbone.trainable
     tiny = instantiate(compose_config("train", ["debug=tiny"]).model, _convert_="object")
     assert isinstance(tiny.backbone, SpectralBackbone) and tiny.backbone.num_eigs == 40

@@ -29,7 +29,8 @@ from shapecorr.nn.spectral_conv import ORIGINAL_EIGENVALUE_FACTOR, SpectralBackb
 C_IN, C_OUT, N_BASIS, N_EIGS = 6, 4, 5, 12
 SMALL_BACKBONE = {"in_channels": C_IN, "out_channels": C_OUT, "num_basis": N_BASIS, "num_eigs": N_EIGS,
                   "max_frequency": 50.0}
-SMALL_LAYER = {"num_samples": 50, "layer": {"k_array": [6, 8], "refine_k_min": 6, "refine_k_max": 10, "refine_levels": 2}}
+SMALL_LAYER = {"num_samples": 50,
+               "layer": {"k_array": [6, 8], "refine_k_min": 6, "refine_k_max": 10, "refine_levels": 2}}
 
 
 def small(pretrained=None, backbone=None, **backbone_overrides) -> DeepShells:

@@ -260,7 +260,8 @@ def test_options_are_validated(tmp_path):
         legacy = NeuroMorph(**small(), num_samples=3, layer={"k": 1}, val_refine_levels=2, num_eigs=4)
     assert not nm.LEGACY_CHECKPOINT_OPTIONS & set(legacy.hparams)
     for bad in (dict(typo_option=1), dict(sigma=-1.0), dict(query_resolution=2),
-                dict(arap_edge_weight_scale=0.0), dict(augment=dict(axis="q")), dict(interp_times=[]), dict(interp_times=[1.0, 0.5]),
+                dict(arap_edge_weight_scale=0.0), dict(augment=dict(axis="q")), dict(interp_times=[]),
+                dict(interp_times=[1.0, 0.5]),
                 dict(loss={"not": "a loss"}), dict(n_intermediate=-1), dict(n_intermediate=1.5)):
         with pytest.raises(ConfigError):
             NeuroMorph(**small(), **bad)
@@ -444,8 +445,8 @@ def test_an_old_checkpoint_file_loads(pair, tmp_path):
 
 def test_backbone_and_optimizer_nodes_are_selectable(tmp_path, compose_config):
     base = ["model=neuromorph", "debug=tiny", f"paths.cache_dir={tmp_path}", f"paths.output_dir={tmp_path}"]
-    cfg = compose_config("train", [*base, "model/backbone=edgeconv", "model.backbone.feature_dim=24", "model/scheduler=step",
-                    "model.optimizer.lr=2e-4"])
+    cfg = compose_config("train", [*base, "model/backbone=edgeconv", "model.backbone.feature_dim=24",
+                                   "model/scheduler=step", "model.optimizer.lr=2e-4"])
     assert cfg.model.backbone._target_ == "shapecorr.nn.edgeconv_backbone.EdgeConvBackbone"
     model = instantiate(cfg.model, _convert_="object")
     assert model.backbone.out_channels == 24 and model.feature_net is model.backbone

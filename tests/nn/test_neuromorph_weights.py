@@ -43,7 +43,8 @@ def _original_state(prefix: str, dim: int, out: int, seed: int) -> dict[str, tor
 def _original_forward(state, prefix, p, directed):
     """The original ResnetECPos, edge by edge: messages nn([x_i, x_j - x_i]) maxed over j -> i."""
     s = {k[len(prefix) + 1:]: v.to(DTYPE) for k, v in state.items() if k.startswith(prefix)}
-    lin = lambda name, x, bias=True: x @ s[f"{name}.weight"].T + (s[f"{name}.bias"] if bias else 0.0)
+    def lin(name, x, bias=True):
+        return x @ s[f"{name}.weight"].T + (s[f"{name}.bias"] if bias else 0.0)
     src, dst = directed
 
     def edgeconv(k, x):

@@ -1,5 +1,7 @@
-"""Optional corruptions of the synthetic shapes for robustness benchmarks: vertex noise, holes, and the
-fusion of touching body parts (topological noise, as in the SHREC'16 TOPKIDS benchmark).
+"""Optional corruptions of the synthetic shapes for robustness benchmarks.
+
+Vertex noise, holes, and the fusion of touching body parts (topological noise, as in the SHREC'16 TOPKIDS
+benchmark).
 
 Ground truth stays valid for what remains: noise moves vertices but keeps their indices; a hole removes
 vertices, and a reference point whose vertex disappears is reassigned to the nearest surviving vertex
@@ -132,8 +134,9 @@ def fuse_contacts(
     bridge: float,
     grid_step: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Surface of the posed solid in which touching body parts are fused (a closed, possibly higher-genus
-    surface).
+    """Surface of the posed solid in which touching body parts are fused.
+
+    The result is a closed, possibly higher-genus surface.
 
     The new surface is the zero level set of ``s(x) - bridge * k(x)``: ``s`` the signed distance to the
     posed mesh (sign from the winding number, robust to self-intersections), ``k(x)`` a Gaussian bump of

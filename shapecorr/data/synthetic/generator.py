@@ -99,6 +99,7 @@ class ShapeSpec:
 
     @property
     def name(self) -> str:
+        """Shape name ``<class>_s<subject>_p<pose>`` (two-digit subject and pose)."""
         return f"{self.cls}_s{self.subject:02d}_p{self.pose:02d}"
 
 
@@ -150,9 +151,12 @@ def shape_specs(cfg: SyntheticConfig) -> list[ShapeSpec]:
 
 
 def split_names(cfg: SyntheticConfig, specs: list[ShapeSpec]) -> dict[str, list[str]]:
-    """Train/test names: per class, the last ``round(test_fraction * count)`` subjects (``split="subject"``)
-    or poses (``split="pose"``) are test; at least one when ``test_fraction > 0`` and at least one is left
-    for training (a class with a single subject/pose is train only)."""
+    """Train/test names by class and split.
+
+    Per class, the last ``round(test_fraction * count)`` subjects (``split="subject"``) or poses
+    (``split="pose"``) are test; at least one when ``test_fraction > 0`` and at least one is left for training
+    (a class with a single subject/pose is train only).
+    """
     out = {"train": [], "test": []}
     for c in CLASS_IDS:
         members = [s for s in specs if s.cls == c]

@@ -1,5 +1,7 @@
-"""Ground truth of the synthetic shapes: dense (every vertex traced back to the template surface) and
-sparse (``.vts`` reference points in the FAUST_r format, plus the mirrored ``.sym.vts``).
+"""Ground truth of the synthetic shapes: dense and sparse.
+
+Dense: every vertex traced back to the template surface; sparse: ``.vts`` reference points in the FAUST_r
+format, plus the mirrored ``.sym.vts``.
 
 * **Dense.** A remeshed vertex lies on the posed template surface (the remesher projects onto it); its
   closest point there gives a template triangle and barycentric coordinates, i.e. a point of the canonical

@@ -1,5 +1,6 @@
-"""Surface extraction and clean-up for the synthetic creatures: implicit field -> marching cubes -> a
-watertight, manifold, genus-0 triangle mesh; topology checks.
+"""Surface extraction and clean-up for the synthetic creatures; topology checks.
+
+Implicit field -> marching cubes -> a watertight, manifold, genus-0 triangle mesh.
 """
 
 from __future__ import annotations

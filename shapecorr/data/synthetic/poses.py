@@ -1,5 +1,7 @@
-"""Poses of the synthetic creatures: a library of key poses, random poses within joint limits, and the
-detection of self-contact (surfaces of distant body parts touching).
+"""Poses of the synthetic creatures.
+
+A library of key poses, random poses within joint limits, and the detection of self-contact (surfaces of
+distant body parts touching).
 
 A pose is a ``(B, 3)`` array of joint angles (flex, abd, twist) in degrees, see ``skeleton.py``. Key poses
 name only the joints they move; a name without side (``upper_arm``) sets both sides, ``upper_arm_l`` /

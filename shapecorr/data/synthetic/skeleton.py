@@ -1,5 +1,7 @@
-"""Body plans of the synthetic creatures: bones (a kinematic tree with joint limits) and the implicit
-primitives (round cones, ellipsoids) whose smooth union is the creature's surface.
+"""Body plans of the synthetic creatures: bones and implicit primitives.
+
+Bones form a kinematic tree with joint limits; the implicit primitives (round cones, ellipsoids) have the
+creature's surface as their smooth union.
 
 Coordinates are in metres of the rest pose. Axes: ``+z`` up, ``+y`` forward (the way the creature looks),
 ``+x`` the creature's right (right-handed); every body plan is mirror-symmetric about the plane ``x = 0``.
@@ -109,6 +111,7 @@ class BodyPlan:
 
     @property
     def bone_names(self) -> tuple[str, ...]:
+        """Names of the bones, in order."""
         return tuple(b.name for b in self.bones)
 
     def index(self, name: str) -> int:

@@ -76,10 +76,12 @@ class Template:
 
     @property
     def n_verts(self) -> int:
+        """Number of vertices."""
         return int(len(self.verts))
 
     @property
     def area(self) -> float:
+        """Total surface area."""
         return float(igl.doublearea(self.verts, self.faces).sum() / 2.0)
 
 
