@@ -19,8 +19,11 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from shapecorr.data.cache import atomic_open
+from shapecorr.data.datasets import pair_name
 from shapecorr.errors import ConfigError
 from shapecorr.eval import metrics
+from shapecorr.matching.result import MatchResult
 from shapecorr.matching.shape_graph import (
     GRAPH_VARIANTS,
     ShapeGraph,
@@ -226,15 +229,78 @@ def cycle_consistency(maps: dict, triplets, geodesics, sqrt_areas) -> dict:
             "n_triplets": len(per_triplet)}
 
 
+#: Subfolder of an evaluation's output with one file per graph query (resumable).
+QUERIES_DIR = "graph_queries"
+
+
+def query_file(out_dir, name_x: str, name_y: str):
+    from pathlib import Path
+
+    return Path(out_dir) / QUERIES_DIR / f"{pair_name(name_x, name_y)}.npz"
+
+
+def query_pairs_cached(matcher, shapes, pairs, out_dir, progress: bool = False, device=None) -> list[GraphQuery]:
+    """:func:`query_pairs` with one ``.npz`` per pair under ``out_dir/graph_queries`` (pairs already written are
+    read back, not queried again)."""
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    todo = [k for k, (i, j) in enumerate(pairs.tolist())
+            if not query_file(out_dir, shapes.names[i], shapes.names[j]).is_file()]
+    for k, q in zip(todo, query_pairs(matcher, shapes, pairs[todo], progress=progress, device=device)):
+        i, j = pairs[k]
+        path = query_file(out_dir, shapes.names[i], shapes.names[j])
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_open(path) as fh:
+            np.savez(fh, map_x_to_y=q.map_x_to_y.numpy(), map_y_to_x=q.map_y_to_x.numpy(), cost=np.array(q.cost))
+    return [load_query(query_file(out_dir, shapes.names[i], shapes.names[j])) for i, j in pairs.tolist()]
+
+
+def load_query(path) -> GraphQuery:
+    with np.load(path, allow_pickle=False) as z:
+        return GraphQuery(torch.from_numpy(z["map_x_to_y"].astype(np.int64)),
+                          torch.from_numpy(z["map_y_to_x"].astype(np.int64)), float(z["cost"]))
+
+
+class ComposedMatcher:
+    """A matcher returning the stored maps of a :class:`CollectionGraph` by shape names: composed along the graph
+    (``use="graph"``) or the direct query maps (``use="pairwise"``); a pair without a path gets its direct map."""
+
+    def __init__(self, collection: CollectionGraph, use: str = "graph"):
+        if use not in ("graph", "pairwise"):
+            raise ConfigError(f"use must be 'graph' or 'pairwise', got {use!r}")
+        self.collection, self.use = collection, use
+        self.index = {n: i for i, n in enumerate(collection.names)}
+
+    def maps(self) -> dict:
+        """``(s, t)`` -> map, as this matcher answers."""
+        direct = {k: v[0] for k, v in self.collection.direct.items()}
+        return direct if self.use == "pairwise" else {**direct, **self.collection.composed}
+
+    def match(self, x, y) -> MatchResult:
+        i, j = self.index[x.name], self.index[y.name]
+        if i == j:
+            return MatchResult(p2p=torch.arange(x.shape.n_verts))
+        if self.use == "graph" and (i, j) in self.collection.composed:
+            return MatchResult(p2p=torch.from_numpy(self.collection.composed[(i, j)]))
+        if (i, j) in self.collection.direct:
+            return MatchResult(p2p=torch.from_numpy(self.collection.direct[(i, j)][0]))
+        if (j, i) in self.collection.direct:  # only the reverse query was made (knn): its Y -> X map
+            return MatchResult(p2p=torch.from_numpy(self.collection.direct[(j, i)][1]))
+        raise ConfigError(f"no map for the pair {pair_name(x.name, y.name)}: it was not queried and has no path")
+
+
 __all__ = [
     "COLLECTION_VARIANTS",
+    "ComposedMatcher",
+    "QUERIES_DIR",
     "CollectionGraph",
     "GraphQuery",
     "build_collection_graph",
     "candidate_pairs",
     "check_variant",
     "cycle_consistency",
+    "load_query",
     "query_pairs",
+    "query_pairs_cached",
     "sample_triplets",
     "shape_dna",
 ]

@@ -35,6 +35,7 @@ import numpy as np
 import pytorch_lightning as pl
 import torch
 
+from shapecorr.data.cache import atomic_open
 from shapecorr.errors import ConfigError
 from shapecorr.eval.multi_shape import (
     CollectionGraph,
@@ -111,13 +112,11 @@ def save_graph(path: str | os.PathLike, graph: CollectionGraph, epoch: int) -> P
     keys = sorted(graph.composed)
     maps = [graph.composed[k].astype(np.int32) for k in keys]
     offsets = np.cumsum([0] + [m.shape[0] for m in maps]).astype(np.int64)
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    with open(tmp, "wb") as fh:
+    with atomic_open(path) as fh:
         np.savez(fh, names=np.array(graph.names, dtype=str), costs=graph.graph.costs, pairs=graph.pairs,
                  variant=np.array(graph.variant), epoch=np.array(int(epoch)),
                  map_keys=np.array(keys, dtype=np.int64).reshape(-1, 2), map_offsets=offsets,
                  map_values=np.concatenate(maps) if maps else np.zeros(0, np.int32))
-    os.replace(tmp, path)
     return path
 
 
