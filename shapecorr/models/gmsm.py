@@ -36,6 +36,7 @@ import pytorch_lightning as pl
 import torch
 
 from shapecorr.data.cache import atomic_open
+from shapecorr.data.operators import merge_requests
 from shapecorr.errors import ConfigError
 from shapecorr.eval.multi_shape import (
     CollectionGraph,
@@ -52,6 +53,7 @@ from shapecorr.matching.deep_shells import (
     full_resolution_shells,
     one_level_query,
     random_samples,
+    shell_size,
     two_sided_alignment_cost,
 )
 from shapecorr.matching.result import MatchResult
@@ -198,6 +200,17 @@ class GMSM(DeepShells):
         self.save_hyperparameters({**dict(self.hparams), "graph": asdict(self.graph_options),
                                    "lambda_graph": self.lambda_graph, "graph_loss_scale": self.graph_loss_scale,
                                    "dropout_at_test": self.dropout_at_test, "test_query": self.test_query})
+
+    @property
+    def required_operators(self) -> dict:  # type: ignore[override]
+        """The backbone's operators and the eigenpairs of the training levels; the refinement schedule's only with
+        ``test_query="deep_shells"`` (the fast query works at the last training level)."""
+        if self.test_query == "deep_shells":
+            return super().required_operators
+        cfg = self.config
+        need = max(max(shell_size(k, cfg.smooth_x, cfg.sigmoid_inclusive),
+                       shell_size(k, "sigmoid", cfg.sigmoid_inclusive)) for k in cfg.k_array)
+        return merge_requests(getattr(self.backbone, "required_operators", {}), {"eigenbasis": {"k": int(need)}})
 
     # -- graph -------------------------------------------------------------------------------------------------
     def configure_callbacks(self):
