@@ -287,7 +287,7 @@ def evaluate_multi_shape(cfg: DictConfig, matcher, shapes, pairs, out_dir: Path,
     result = reports.aggregate(records, [e for _, e, _ in loaded], [s for _, _, s in loaded])
     result.update(memory)
     triplets = multi_shape.sample_triplets(len(names), int(cfg.get("max_triplets") or multi_shape.DEFAULT_MAX_TRIPLETS))
-    geodesics = lambda i: shapes.geodesics(i, method=settings.geodesics)  # noqa: E731
+    geodesics = lambda i: shapes.geodesics(i, method=settings.geodesics)
     areas: dict[int, float] = {}
 
     def sqrt_area(i: int) -> float:

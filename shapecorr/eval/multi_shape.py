@@ -290,9 +290,9 @@ class ComposedMatcher:
 
 __all__ = [
     "COLLECTION_VARIANTS",
-    "ComposedMatcher",
     "QUERIES_DIR",
     "CollectionGraph",
+    "ComposedMatcher",
     "GraphQuery",
     "build_collection_graph",
     "candidate_pairs",

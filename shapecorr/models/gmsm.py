@@ -370,9 +370,9 @@ class ShapeGraphCallback(pl.Callback):
 
 __all__ = [
     "DEFAULT_LAMBDA_GRAPH",
+    "GMSM",
     "GRAPH_FILE",
     "GRAPH_LOSS_SCALE",
-    "GMSM",
     "GraphOptions",
     "ShapeGraphCallback",
     "graph_path",

@@ -25,15 +25,22 @@ from shapecorr.geometry.diffusion_operators import GRADIENT_RIDGE, diffusion_gra
 from shapecorr.geometry.laplace_beltrami import eigenbasis
 from shapecorr.matching.deep_shells import full_resolution_shells
 from shapecorr.models.deep_shells import DeepShells
-from shapecorr.models.gmsm import GMSM, GRAPH_FILE, GraphOptions, ShapeGraphCallback, _gather, load_graph
+from shapecorr.models.gmsm import (
+    GMSM,
+    GRAPH_FILE,
+    GraphOptions,
+    ShapeGraphCallback,
+    _gather,
+    load_graph,
+)
 from shapecorr.nn.diffusion_net import DiffusionNetBackbone
 
 pytestmark = [pytest.mark.usefixtures("single_thread"),
               pytest.mark.filterwarnings("ignore:You are trying to `self.log\\(\\)`")]
 
 N_EIG = 40
-BACKBONE = dict(k_eig=32, out_channels=8, width=8, n_blocks=1, dropout=0.5)
-LAYER = dict(num_samples=80, layer=dict(k_array=[6, 10, 14], refine_k_max=20, refine_levels=2))
+BACKBONE = {"k_eig": 32, "out_channels": 8, "width": 8, "n_blocks": 1, "dropout": 0.5}
+LAYER = {"num_samples": 80, "layer": {"k_array": [6, 10, 14], "refine_k_max": 20, "refine_levels": 2}}
 
 
 def _sample(verts, faces, name) -> ShapeSample:
