@@ -28,7 +28,11 @@ import numpy as np
 import torch
 from bench_common import machine_info, median, write_report
 
-from shapecorr.eval.multi_shape import GraphQuery, build_collection_graph, candidate_pairs
+from shapecorr.eval.multi_shape import (
+    GraphQuery,
+    build_collection_graph,
+    candidate_pairs,
+)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "gmsm_graph_cost.json"
 

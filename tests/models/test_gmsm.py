@@ -247,3 +247,18 @@ def test_evaluate_gmsm_writes_multi_shape_metrics(tmp_path, compose_config):
     direct = evaluate(compose_config("evaluate", overrides=[*base, "matching=pairwise",
                                                             f"output_dir={tmp_path / 'pairwise'}"]))
     assert "multi_shape" not in direct and direct["n_pairs"] == 12
+
+
+def test_configs_pairwise_and_gmsm_compose(compose_config):
+    from hydra.utils import instantiate
+
+    pairwise = instantiate(compose_config("train", ["model=deep_shells", "model/backbone=diffusion_net",
+                                                    "debug=tiny"]).model, _convert_="object")
+    assert type(pairwise) is DeepShells and isinstance(pairwise.backbone, DiffusionNetBackbone)
+    tiny = compose_config("train", ["model=gmsm", "debug=tiny"])
+    model = instantiate(tiny.model, _convert_="object")
+    assert isinstance(model, GMSM) and model.graph_options.builds_at(0)
+    published = compose_config("train", ["experiment=gmsm_faust_r", "data.root=/nonexistent"])
+    assert published.model.graph.burn_in == 100 and published.model.graph.update_every == 20
+    assert published.model.lambda_graph == 0.5 and published.model.num_samples == 2000
+    assert compose_config("evaluate", ["model=gmsm", "matching=pairwise"]).matching == "pairwise"
