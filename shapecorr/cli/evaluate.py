@@ -57,6 +57,7 @@ import os
 import platform
 import shutil
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -71,7 +72,7 @@ from shapecorr.data.cache import atomic_open
 from shapecorr.data.datasets import PairDataset, pair_name
 from shapecorr.data.operators import required_request
 from shapecorr.errors import ConfigError
-from shapecorr.eval import protocol, reports
+from shapecorr.eval import multi_shape, protocol, reports
 from shapecorr.eval.export import INTERP_DIR, map_paths
 from shapecorr.matching.baselines import PrecomputedMaps
 from shapecorr.matching.result import Matcher
@@ -248,6 +249,100 @@ def task_option(cfg: DictConfig) -> str:
     return task
 
 
+#: Values of the ``matching`` option of graph matchers (model=gmsm).
+MATCHING_MODES = ("graph", "pairwise")
+
+
+def matching_option(cfg: DictConfig, matcher) -> str | None:
+    """``cfg.matching`` (``graph`` | ``pairwise``, default graph) for matchers with ``graph_query`` (G-MSM), else
+    None (the option does not apply)."""
+    if not hasattr(matcher, "graph_query"):
+        return None
+    mode = str(cfg.get("matching") or "graph")
+    if mode not in MATCHING_MODES:
+        raise ConfigError(f"matching must be one of {MATCHING_MODES}, got {mode!r}")
+    return mode
+
+
+def graph_variant_option(cfg: DictConfig, matcher) -> str:
+    """The graph variant of a multi-shape evaluation: ``model.graph.variant`` of the config, else the matcher's."""
+    node = (cfg.get("model") or {}).get("graph") or {}
+    variant = node.get("variant") or getattr(getattr(matcher, "graph_options", None), "variant", "full")
+    return multi_shape.check_variant(str(variant))
+
+
+def evaluate_multi_shape(cfg: DictConfig, matcher, shapes, pairs, out_dir: Path, settings, fingerprint, rank: int,
+                         world: int, view) -> dict[str, Any] | None:
+    """Multi-shape matching over the split (``evaluate.py model=gmsm``, docs/gmsm.md §4).
+
+    1. Every ordered pair of the split's shapes (or the knn candidates) is queried with ``matcher.graph_query``,
+       sharded over the ranks (``OUT/graph_queries/<x>__<y>.npz``, resumable).
+    2. Rank 0 builds the shape graph from the costs, composes every pair's map along it and scores the evaluated
+       ``pairs`` with the usual per-pair protocol (records, maps, metrics.json, per_pair.csv, pck.png, examples).
+    3. ``metrics.json["multi_shape"]``: variant, shape / query / unreachable counts and ``cycle_consistency``
+       (composed maps) and ``cycle_consistency_pairwise`` (direct maps) over up to ``cfg.max_triplets`` (default
+       200) ordered triplets; ``OUT/shape_graph.png`` and ``OUT/shape_graph.npz``.
+    """
+    from shapecorr.eval.metrics import surface_area
+    from shapecorr.models.gmsm import save_graph
+    from shapecorr.viz.shape_graph import write_shape_graph_png
+
+    variant = graph_variant_option(cfg, matcher)
+    names = list(shapes.names)
+    descriptors = None
+    if variant == "knn":
+        descriptors = np.stack([multi_shape.shape_dna(shapes[i].evals) for i in range(len(names))])
+    knn_k = int(((cfg.get("model") or {}).get("graph") or {}).get("knn_k") or 5)
+    candidates = multi_shape.candidate_pairs(len(names), variant, knn_k, descriptors)
+    mine = protocol.shard_pairs(list(range(candidates.shape[0])), rank, world)
+    device = torch.device(settings.device)
+    multi_shape.query_pairs_cached(matcher, shapes, candidates[mine], out_dir, progress=bool(cfg.progress) and
+                                   rank == 0, device=device)
+    _barrier()
+    memory = _peak_memory()
+    if rank != 0:
+        return None
+    queries = multi_shape.query_pairs_cached(matcher, shapes, candidates, out_dir)  # all read back from files
+    collection = multi_shape.build_collection_graph(names, candidates, queries, variant)
+    composed = multi_shape.ComposedMatcher(collection, "graph")
+    records = protocol.evaluate_pairs(composed, shapes, pairs, out_dir, replace(settings, device="cpu"),
+                                      progress=bool(cfg.progress))
+    loaded = [protocol.load_record(out_dir, r.source, r.target) for r in records]
+    result = reports.aggregate(records, [e for _, e, _ in loaded], [s for _, _, s in loaded])
+    result.update(memory)
+    triplets = multi_shape.sample_triplets(len(names), int(cfg.get("max_triplets") or multi_shape.DEFAULT_MAX_TRIPLETS))
+    geodesics = lambda i: shapes.geodesics(i, method=settings.geodesics)
+    areas: dict[int, float] = {}
+
+    def sqrt_area(i: int) -> float:
+        if i not in areas:
+            shape = shapes.load_shape(i)
+            areas[i] = float(np.sqrt(surface_area(shape.verts.numpy(), shape.faces.numpy())))
+        return areas[i]
+
+    result["multi_shape"] = {
+        "variant": variant, "n_shapes": len(names), "n_queries": int(candidates.shape[0]),
+        "n_edges": int(collection.graph.edges.shape[0]), "unreachable_pairs": len(collection.unreachable),
+        "cycle_consistency": multi_shape.cycle_consistency(composed.maps(), triplets, geodesics, sqrt_area),
+        "cycle_consistency_pairwise": multi_shape.cycle_consistency(
+            multi_shape.ComposedMatcher(collection, "pairwise").maps(), triplets, geodesics, sqrt_area),
+    }
+    result["run"] = {**fingerprint, "device": str(device), "world_size": world,
+                     "date": datetime.datetime.now().isoformat(timespec="seconds"), "command": " ".join(sys.argv),
+                     "machine": platform.processor() or platform.machine(), "torch": torch.__version__}
+    save_graph(out_dir / "shape_graph.npz", collection, epoch=-1)
+    write_shape_graph_png(out_dir / "shape_graph.png", collection.graph, names)
+    reports.write_metrics_json(out_dir / "metrics.json", result)
+    reports.write_per_pair_csv(out_dir / "per_pair.csv", records)
+    write_pck_png(out_dir / "pck.png", result, label=f"G-MSM ({variant} graph)")
+    render_examples(out_dir, shapes, pairs, records, int(cfg.n_examples), view)
+    cc = result["multi_shape"]["cycle_consistency"]
+    print(reports.summary(result, out_dir))
+    if cc["mean"] is not None:
+        print(f"cycle consistency ({variant} graph): {cc['mean']:.4f} over {cc['n_triplets']} triplets", flush=True)
+    return result
+
+
 @exit_on_user_error
 def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     """Run the evaluation described by ``cfg`` (configs/evaluate.yaml); returns metrics on rank 0, else None.
@@ -297,6 +392,9 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     }
     if protocol.interpolates(matcher):
         fingerprint["interp_times"] = None if settings.interp_times is None else list(settings.interp_times)
+    matching = matching_option(cfg, matcher)  # G-MSM: multi-shape matching over the split (new in issue 13)
+    if matching is not None:
+        fingerprint["matching"] = matching
     if rank == 0:
         _check_run_file(out_dir, fingerprint, bool(cfg.resume))
         # Fill the cache of every shape of the split once, in parallel, before any pair is evaluated.
@@ -305,6 +403,8 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
                        progress=bool(cfg.progress))
     _barrier()
 
+    if matching == "graph":
+        return evaluate_multi_shape(cfg, matcher, shapes, pairs, out_dir, settings, fingerprint, rank, world, view)
     mine = protocol.shard_pairs(pairs, rank, world)
     names = [(shapes.names[i], shapes.names[j]) for i, j in pairs]
     done = protocol.count_done(out_dir, names)

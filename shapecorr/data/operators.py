@@ -608,6 +608,22 @@ for _kind in ("wks", "hks"):
 register_operator("geodesics", defaults={"method": "heat"}, version=1, compute=_geodesics)
 
 
+#: Relative ridge of DiffusionNet's per-vertex gradient fit (``geometry.diffusion_operators.GRADIENT_RIDGE``,
+#: docs/gmsm.md §2.1; the value is repeated here so that importing the registry does not import the geometry).
+DEFAULT_GRADIENT_RIDGE = 1e-5
+
+
+def _diffusion_gradients(ctx: OperatorContext, p: dict) -> dict:
+    from shapecorr.geometry.diffusion_operators import diffusion_gradients
+
+    return diffusion_gradients(ctx.verts, ctx.faces, ridge=float(p["ridge"]))
+
+
+# DiffusionNet (docs/gmsm.md §2.1, §7): tangent frames (n, 3, 3) float32, grad_x / grad_y (n, n) sparse CSR.
+register_operator("diffusion_gradients", defaults={"ridge": DEFAULT_GRADIENT_RIDGE}, version=1,
+                  compute=_diffusion_gradients)
+
+
 def feature_names() -> tuple[str, ...]:
     """Registered per-vertex descriptors (``ShapeSample.features``)."""
     return tuple(name for name, op in REGISTRY.items() if op.feature)

@@ -352,6 +352,9 @@ class DeepShells(CorrespondenceModule):
                                 return_plans=False)  # the loss needs the energies only: never form n x m plans
         energies = out.level_energies
         loss = (self.level_weights.to(energies) * energies).sum()
+        extra = self.extra_losses(batch, out)
+        for term in extra.values():
+            loss = loss + term
         if not torch.isfinite(loss):
             raise NumericalError(f"deep_shells: training loss is {loss.item()} on pair {batch.name} "
                                  f"(level energies {energies.detach().cpu().tolist()})")
@@ -359,7 +362,15 @@ class DeepShells(CorrespondenceModule):
         self.log("train/loss", loss, prog_bar=True, **log)
         for k, e in zip(self.config.k_array, energies):
             self.log(f"train/energy_k{k}", e, **log)
+        for name, term in extra.items():
+            self.log(f"train/{name}", term, **log)
         return loss
+
+    def extra_losses(self, batch, out) -> dict[str, torch.Tensor]:
+        """Further weighted loss terms of a training step, ``{name: () tensor}`` (added to the loss, logged as
+        ``train/<name>``); none here. Subclasses (G-MSM's graph loss) read the layer output ``out``
+        (:class:`~shapecorr.matching.deep_shells.DeepShellsOutput`: the last level's ``fmap``, ``tau``)."""
+        return {}
 
     def configure_optimizers(self):
         """Optimizer (and scheduler) from the ``optimizer`` / ``scheduler`` factories."""
