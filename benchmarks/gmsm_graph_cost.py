@@ -103,8 +103,9 @@ def main(argv: list[str]) -> dict:
             "query_seconds": queries * real["seconds_per_query"],
             "build_seconds": row["build_seconds"] * (n_big / largest) ** power,
         }
+        est = extrapolated[variant]
         print(f"n=1000 {variant}: {queries} queries x {real['seconds_per_query']:.3f} s = "
-              f"{extrapolated[variant]['query_seconds'] / 3600:.1f} h, graph ~{extrapolated[variant]['build_seconds']:.0f} s")
+              f"{est['query_seconds'] / 3600:.1f} h, graph ~{est['build_seconds']:.0f} s")
     report = {"command": " ".join(["benchmarks/gmsm_graph_cost.py", *argv]), "machine": machine_info(),
               "k": args.k, "n_verts_synthetic": args.n_verts, "building": building, "real_queries": real,
               "extrapolated_n1000": extrapolated}

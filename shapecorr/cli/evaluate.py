@@ -254,8 +254,11 @@ MATCHING_MODES = ("graph", "pairwise")
 
 
 def matching_option(cfg: DictConfig, matcher) -> str | None:
-    """``cfg.matching`` (``graph`` | ``pairwise``, default graph) for matchers with ``graph_query`` (G-MSM), else
-    None (the option does not apply)."""
+    """The multi-shape matching mode of a run: ``cfg.matching`` for graph matchers, else None.
+
+    ``graph`` (default) or ``pairwise`` for matchers with ``graph_query`` (G-MSM); None for the others (the
+    option does not apply to them).
+    """
     if not hasattr(matcher, "graph_query"):
         return None
     mode = str(cfg.get("matching") or "graph")
@@ -311,7 +314,10 @@ def evaluate_multi_shape(cfg: DictConfig, matcher, shapes, pairs, out_dir: Path,
     result = reports.aggregate(records, [e for _, e, _ in loaded], [s for _, _, s in loaded])
     result.update(memory)
     triplets = multi_shape.sample_triplets(len(names), int(cfg.get("max_triplets") or multi_shape.DEFAULT_MAX_TRIPLETS))
-    geodesics = lambda i: shapes.geodesics(i, method=settings.geodesics)
+
+    def geodesics(i):
+        return shapes.geodesics(i, method=settings.geodesics)
+
     areas: dict[int, float] = {}
 
     def sqrt_area(i: int) -> float:

@@ -80,6 +80,7 @@ class CollectionGraph:
 
 
 def check_variant(variant: str) -> str:
+    """``variant`` itself when it is a collection graph variant (ConfigError naming the choices otherwise)."""
     if variant not in COLLECTION_VARIANTS:
         raise ConfigError(f"graph variant must be one of {COLLECTION_VARIANTS}, got {variant!r}")
     return variant
@@ -102,8 +103,10 @@ def shape_dna(evals, count: int = KNN_DESCRIPTOR_EIGS) -> np.ndarray:
 
 
 def candidate_pairs(n: int, variant: str, knn_k: int = 5, descriptors=None) -> np.ndarray:
-    """Ordered pairs to query: all ``i != j`` (``(n (n - 1), 2)``), or for ``knn`` each shape with its ``knn_k``
-    nearest shapes in ``descriptors (n, d)``, both directions of each candidate edge.
+    """Ordered pairs to query for a collection of ``n`` shapes.
+
+    All ``i != j`` (``(n (n - 1), 2)``), or for ``knn`` each shape with its ``knn_k`` nearest shapes in
+    ``descriptors (n, d)``, both directions of each candidate edge.
 
     Returns
     -------
@@ -240,8 +243,10 @@ def query_file(out_dir, name_x: str, name_y: str):
 
 
 def query_pairs_cached(matcher, shapes, pairs, out_dir, progress: bool = False, device=None) -> list[GraphQuery]:
-    """:func:`query_pairs` with one ``.npz`` per pair under ``out_dir/graph_queries`` (pairs already written are
-    read back, not queried again)."""
+    """:func:`query_pairs` with one ``.npz`` per pair under ``out_dir/graph_queries``.
+
+    Pairs already written are read back, not queried again (an interrupted evaluation resumes).
+    """
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     todo = [k for k, (i, j) in enumerate(pairs.tolist())
             if not query_file(out_dir, shapes.names[i], shapes.names[j]).is_file()]
@@ -255,14 +260,18 @@ def query_pairs_cached(matcher, shapes, pairs, out_dir, progress: bool = False, 
 
 
 def load_query(path) -> GraphQuery:
+    """The :class:`GraphQuery` stored at ``path`` by :func:`query_pairs_cached`."""
     with np.load(path, allow_pickle=False) as z:
         return GraphQuery(torch.from_numpy(z["map_x_to_y"].astype(np.int64)),
                           torch.from_numpy(z["map_y_to_x"].astype(np.int64)), float(z["cost"]))
 
 
 class ComposedMatcher:
-    """A matcher returning the stored maps of a :class:`CollectionGraph` by shape names: composed along the graph
-    (``use="graph"``) or the direct query maps (``use="pairwise"``); a pair without a path gets its direct map."""
+    """A matcher returning the stored maps of a :class:`CollectionGraph` by shape names.
+
+    The maps composed along the graph (``use="graph"``) or the direct query maps (``use="pairwise"``); a pair
+    without a path gets its direct map.
+    """
 
     def __init__(self, collection: CollectionGraph, use: str = "graph"):
         if use not in ("graph", "pairwise"):
@@ -276,6 +285,7 @@ class ComposedMatcher:
         return direct if self.use == "pairwise" else {**direct, **self.collection.composed}
 
     def match(self, x, y) -> MatchResult:
+        """The stored point-to-point map x -> y (``p2p (n_x,)`` int64; the identity for x == y)."""
         i, j = self.index[x.name], self.index[y.name]
         if i == j:
             return MatchResult(p2p=torch.arange(x.shape.n_verts))

@@ -367,9 +367,12 @@ class DeepShells(CorrespondenceModule):
         return loss
 
     def extra_losses(self, batch, out) -> dict[str, torch.Tensor]:
-        """Further weighted loss terms of a training step, ``{name: () tensor}`` (added to the loss, logged as
-        ``train/<name>``); none here. Subclasses (G-MSM's graph loss) read the layer output ``out``
-        (:class:`~shapecorr.matching.deep_shells.DeepShellsOutput`: the last level's ``fmap``, ``tau``)."""
+        """Further weighted loss terms of a training step, ``{name: () tensor}``; none here.
+
+        They are added to the loss and logged as ``train/<name>``. Subclasses (G-MSM's graph loss) read the layer
+        output ``out`` (:class:`~shapecorr.matching.deep_shells.DeepShellsOutput`: the last level's ``fmap``,
+        ``tau``).
+        """
         return {}
 
     def configure_optimizers(self):

@@ -203,8 +203,11 @@ class GMSM(DeepShells):
 
     @property
     def required_operators(self) -> dict:  # type: ignore[override]
-        """The backbone's operators and the eigenpairs of the training levels; the refinement schedule's only with
-        ``test_query="deep_shells"`` (the fast query works at the last training level)."""
+        """The backbone's operators and the eigenpairs of the training levels.
+
+        The refinement schedule's eigenpairs only with ``test_query="deep_shells"`` (the fast query works at the
+        last training level).
+        """
         if self.test_query == "deep_shells":
             return super().required_operators
         cfg = self.config
@@ -214,6 +217,7 @@ class GMSM(DeepShells):
 
     # -- graph -------------------------------------------------------------------------------------------------
     def configure_callbacks(self):
+        """The shape-graph callback when the graph is enabled (so no ``callbacks:`` config is needed)."""
         return [ShapeGraphCallback()] if self.graph_options.enabled else []
 
     def set_graph(self, names, composed, epoch: int) -> None:
@@ -248,6 +252,10 @@ class GMSM(DeepShells):
         return GraphQuery(q.match.map_x_to_y, q.match.map_y_to_x, float(q.cost))
 
     def match(self, x, y) -> MatchResult:
+        """Maps x -> y and y -> x by the fast one-level query (G-MSM's test protocol).
+
+        With ``test_query="deep_shells"``: Deep Shells' test pipeline with the full refinement instead.
+        """
         if self.test_query == "deep_shells":
             return super().match(x, y)
         q = self.graph_query(x, y)
@@ -255,14 +263,17 @@ class GMSM(DeepShells):
 
     # -- the graph loss ----------------------------------------------------------------------------------------
     def graph_loss(self, x, y, tau: torch.Tensor, pi_xy: torch.Tensor, pi_yx: torch.Tensor) -> torch.Tensor:
-        """``lambda_graph * graph_loss_scale * mean |X*[a] - Y_k[b]|^2`` over the pseudo-pairs
-        ``(i, pi_xy[i])``, ``(pi_yx[j], j)``, with ``X*``, ``Y_k`` of shell size ``tau.shape[0]`` at full
-        resolution."""
+        """The graph loss of a pair, ``lambda_graph * graph_loss_scale * mean |X*[a] - Y_k[b]|^2``.
+
+        The mean is over the pseudo-pairs ``(i, pi_xy[i])`` and ``(pi_yx[j], j)`` from the composed maps, with
+        ``X*`` and ``Y_k`` of shell size ``tau.shape[0]`` at full resolution.
+        """
         deformed, shell_y = full_resolution_shells(self.spectral_shape(x), self.spectral_shape(y), tau, self.config)
         cost = two_sided_alignment_cost(deformed, shell_y, pi_xy.to(deformed.device), pi_yx.to(deformed.device))
         return self.lambda_graph * self.graph_loss_scale * cost
 
     def extra_losses(self, batch, out) -> dict[str, torch.Tensor]:
+        """``{"graph_loss": ...}`` when the graph holds composed maps for this pair, else nothing."""
         if self.pseudo_maps is None or self.lambda_graph == 0:
             return {}
         found = self.pseudo_maps.lookup(batch.x.name, batch.y.name)
@@ -313,6 +324,7 @@ class ShapeGraphCallback(pl.Callback):
         return dm.shapes("train")
 
     def build(self, trainer, module: GMSM, epoch: int) -> CollectionGraph:
+        """Query the training pairs (sharded over ranks), build the graph, persist it and hand it to the model."""
         opts = module.graph_options
         shapes = self._shapes(trainer)
         names = list(shapes.names)
@@ -345,6 +357,7 @@ class ShapeGraphCallback(pl.Callback):
         log_shape_graph(trainer.logger, graph.graph, graph.names, step=trainer.global_step)
 
     def on_train_start(self, trainer, pl_module) -> None:
+        """On resume: reload the persisted graph, or rebuild the last one the schedule asked for."""
         if not isinstance(pl_module, GMSM):
             raise ConfigError("ShapeGraphCallback needs the G-MSM model (model=gmsm)")
         start = trainer.current_epoch  # the epoch about to run (past ones on resume)
@@ -363,6 +376,7 @@ class ShapeGraphCallback(pl.Callback):
             self.build(trainer, pl_module, last)
 
     def on_train_epoch_end(self, trainer, pl_module) -> None:
+        """Build the graph at the end of the epochs the schedule names (burn_in, then every update_every)."""
         epoch = trainer.current_epoch
         if pl_module.graph_options.builds_at(epoch):
             self.build(trainer, pl_module, epoch)

@@ -52,7 +52,8 @@ def shape_graph_figure(graph: ShapeGraph, names: Sequence[str] | None = None, ti
     fig = Figure(figsize=(6, 6))  # Agg canvas, no pyplot (as shapecorr.viz.render)
     ax = fig.add_subplot()
     if w:
-        nx.draw_networkx_edges(g, pos, ax=ax, edge_color=w, edge_cmap=matplotlib.colormaps["viridis"], width=1.5, alpha=0.8)
+        nx.draw_networkx_edges(g, pos, ax=ax, edge_color=w, edge_cmap=matplotlib.colormaps["viridis"], width=1.5,
+                               alpha=0.8)
     sizes = [300 if graph.hub == i else 80 for i in range(graph.n)]
     nx.draw_networkx_nodes(g, pos, ax=ax, node_size=sizes, node_color="tab:red")
     if names is not None and graph.n <= MAX_LABELLED_SHAPES:
