@@ -60,6 +60,8 @@ PUBLISHED_LAMBDA_INERTIA = 0.3
 PUBLISHED_RIDGE = 1e-3
 #: Default frames of :meth:`Hamiltonian.match` (as LinearBlend: 0, 1/4, ..., 1).
 HAMILTONIAN_TIMES = (0.0, 0.25, 0.5, 0.75, 1.0)
+#: Alignment MSE (box units^2, RMS 1e-5) below which the pair counts as aligned and Adam stops (project choice).
+ALIGN_TOLERANCE = 1e-10
 #: Frame times are matched to the step grid within this tolerance (in steps).
 STEP_ATOL = 1e-6
 
@@ -92,6 +94,9 @@ class HamiltonianConfig:
         Basis convention.
     learn_anisotropy, learn_inertia : bool
         Optimize the anisotropy matrices / the inertia weight (published: both).
+    align_tolerance : float
+        The optimization stops once the alignment MSE (box units^2) is below it: Adam normalizes the gradient,
+        so round-off gradients of an already aligned pair would otherwise take full steps (project choice).
     chunk_size : int
         Vertices per chunk of the full-resolution replay.
     seed : int
@@ -112,6 +117,7 @@ class HamiltonianConfig:
     convention: str = "published"
     learn_anisotropy: bool = True
     learn_inertia: bool = True
+    align_tolerance: float = ALIGN_TOLERANCE
     chunk_size: int = 1000
     seed: int = 0
 
@@ -147,9 +153,9 @@ class HamiltonianFit:
     samples : (n,) int64
         Indices of the samples in x.
     energies : dict
-        ``align``, ``arap`` and ``loss`` of the last iteration.
+        ``align``, ``arap`` and ``loss`` of the final parameters.
     history : list of (float, float)
-        ``(align, arap)`` per iteration.
+        ``(align, arap)`` of every Adam iteration (before its step).
     seconds : float
         Wall time of the whole call.
     """
@@ -368,7 +374,7 @@ def hamiltonian_interpolation(verts_x: torch.Tensor, faces_x: torch.Tensor | Non
     log_lam = torch.tensor(math.log(cfg.lambda_inertia), device=vx.device).requires_grad_(cfg.learn_inertia)
     params = [p for p in (coeffs, aniso, log_lam) if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=cfg.lr)
-    history, energies = [], {}
+    history = []
     with torch.enable_grad():
         for _ in range(int(cfg.iterations)):
             optimizer.zero_grad(set_to_none=True)
@@ -377,17 +383,17 @@ def hamiltonian_interpolation(verts_x: torch.Tensor, faces_x: torch.Tensor | Non
             loss = e_align + cfg.lambda_reg * e_arap
             if not bool(torch.isfinite(loss.detach())):
                 raise NumericalError("hamiltonian: the energy became non-finite; lower model.lr")
+            if float(e_align.detach()) < cfg.align_tolerance:
+                break
             loss.backward()
             optimizer.step()
-            energies = {"align": float(e_align.detach()), "arap": float(e_arap.detach()), "loss": float(loss.detach())}
-            history.append((energies["align"], energies["arap"]))
+            history.append((float(e_align.detach()), float(e_arap.detach())))
 
     n_total = max(cfg.n_steps, int(math.ceil(float(times.max()) * cfg.n_steps - STEP_ATOL)))
     with torch.no_grad():
         x_end, e_arap, xis = _simulate(x0, coeffs.detach(), aniso.detach(), log_lam.detach(), graph, n_total, cfg)
-        if not energies:
-            e_align = torch.nn.functional.mse_loss(x_end[keep], target)
-            energies = {"align": float(e_align), "arap": float(e_arap), "loss": float(e_align + cfg.lambda_reg * e_arap)}
+        e_align = torch.nn.functional.mse_loss(x_end[keep], target)
+        energies = {"align": float(e_align), "arap": float(e_arap), "loss": float(e_align + cfg.lambda_reg * e_arap)}
         path = _replay(bx, coeffs.detach(), xis, cfg)
         if not bool(torch.isfinite(path).all()):
             raise NumericalError("hamiltonian: the full-resolution replay diverged (NaN/Inf)")
