@@ -45,7 +45,8 @@ from shapecorr.axiomatic.divfree import ARAP_NORMALIZATION, PUBLISHED_KNN, PUBLI
 from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.geometry import divergence_free as df
 from shapecorr.geometry.sampling import farthest_point_sampling
-from shapecorr.losses.arap import arap_rotations
+from shapecorr.losses.arap import _edge_vectors, arap_rotations
+from shapecorr.matching.baselines import LinearBlend
 from shapecorr.matching.result import MatchResult
 
 #: Adam step size (original code ``DivFreeParam.lr``).
@@ -182,10 +183,6 @@ class _Graph:
     edges: torch.Tensor  # (E, 2) int64
     weights: torch.Tensor  # (E,) float
     rest: torch.Tensor  # (E, 3) x_0[b] - x_0[a]
-
-
-def _edge_vectors(x: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
-    return x[edges[:, 1]] - x[edges[:, 0]]
 
 
 def _laplacian_apply(q: torch.Tensor, graph: _Graph) -> torch.Tensor:
@@ -410,46 +407,33 @@ def hamiltonian_interpolation(verts_x: torch.Tensor, faces_x: torch.Tensor | Non
 # ----------------------------------------------------------------------------------------------------------
 # The matcher
 # ----------------------------------------------------------------------------------------------------------
-class Hamiltonian(torch.nn.Module):
-    """Hamiltonian interpolation around any matcher (as LinearBlend; configs/model/hamiltonian.yaml).
+class Hamiltonian(LinearBlend):
+    """Hamiltonian interpolation around any matcher (configs/model/hamiltonian.yaml).
 
     The maps are those of the wrapped matcher; the frames are the optimized simulation moving every vertex of
-    x towards its image ``y[p2p]`` (:func:`hamiltonian_interpolation`). A ``torch.nn.Module`` only so that
-    ``.eval()`` / ``.to()`` reach a wrapped learned model; it has no trainable parameters of its own.
+    x towards its image ``y[p2p]`` (:func:`hamiltonian_interpolation`). It reuses LinearBlend's wrapping (the
+    matcher's ``required_operators`` / ``needs_ground_truth``, ``match`` at ``interp_times``, a
+    ``torch.nn.Module`` so that ``.eval()`` / ``.to()`` reach a wrapped learned model) and replaces the
+    straight lines by the simulation.
 
     Parameters
     ----------
     matcher : Matcher
         Anything with ``match(x, y) -> MatchResult`` (default in the config: ``identity_gt``).
     interp_times : sequence of float
-        Frames of :meth:`match`; :meth:`interpolate` takes any times >= 0.
+        Frames of :meth:`match`, >= 0; :meth:`interpolate` takes any times >= 0.
     **config
         Fields of :class:`HamiltonianConfig`.
     """
 
     def __init__(self, matcher, interp_times=HAMILTONIAN_TIMES, **config):
-        super().__init__()
-        if not callable(getattr(matcher, "match", None)):
-            raise ConfigError(f"Hamiltonian wraps a matcher (with a match(x, y) method), got {type(matcher).__name__}")
-        values = [float(t) for t in interp_times]
-        if not values or not all(math.isfinite(t) and t >= 0 for t in values):
-            raise ConfigError(f"Hamiltonian interp_times must be non-empty, finite and >= 0, got {values}")
+        super().__init__(matcher, interp_times)
+        if min(self.interp_times) < 0:
+            raise ConfigError(f"Hamiltonian interp_times must be >= 0, got {list(self.interp_times)}")
         unknown = set(config) - set(HamiltonianConfig.__dataclass_fields__)
         if unknown:
             raise ConfigError(f"Hamiltonian: unknown options {sorted(unknown)} (configs/model/hamiltonian.yaml)")
-        self.matcher = matcher
-        self.interp_times = tuple(values)
         self.config = HamiltonianConfig(**config)
-
-    @property
-    def required_operators(self) -> dict:
-        """The wrapped matcher's operator request."""
-        return dict(getattr(self.matcher, "required_operators", {}) or {})
-
-    @property
-    def needs_ground_truth(self) -> bool:
-        """Whether the wrapped matcher needs the ground truth."""
-        return bool(getattr(self.matcher, "needs_ground_truth", False))
 
     def interpolate(self, x, y, times) -> MatchResult:
         """The wrapped matcher's maps and the Hamiltonian frames at ``times (T,)`` (values >= 0)."""
@@ -461,7 +445,3 @@ class Hamiltonian(torch.nn.Module):
         extras.update({"energies": fit.energies, "fit_seconds": fit.seconds, "lambda_inertia": fit.lambda_inertia})
         return MatchResult(p2p=result.p2p, p2p_inv=result.p2p_inv, deformation=fit.frames,
                            times=fit.times.to(fit.frames.device), extras=extras)
-
-    def match(self, x, y) -> MatchResult:
-        """:meth:`interpolate` at the default frames ``interp_times``."""
-        return self.interpolate(x, y, torch.tensor(self.interp_times))
