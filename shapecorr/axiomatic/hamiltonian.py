@@ -1,0 +1,447 @@
+"""Hamiltonian shape interpolation (Eisenberger & Cremers, ECCV 2020; docs/hamiltonian.md).
+
+x is moved towards the target positions of its vertices (given by a map to y) by a time-discrete physical
+simulation: velocities live in the divergence-free basis of :mod:`shapecorr.geometry.divergence_free`, so every
+in-between keeps the volume, and each step balances inertia against an anisotropic as-rigid-as-possible force.
+The free variables (initial field coefficients ``a``, per-sample 3x3 anisotropy matrices ``A_i``, the log of the
+inertia weight) are optimized with Adam through the whole simulation (autograd).
+
+One step (docs/hamiltonian.md §2), on ``n`` farthest-point samples with a kNN graph of undirected edges ``(a, b)``
+weighted by their multiplicity ``c_e`` in the directed neighbour list, ``e(x) = x_b - x_a``, step ``h = 1 / N``:
+
+1. predicted velocity ``v* = 2 v_t - v_{t-1}`` (``extrapolate_velocity``; otherwise ``v* = v_t``);
+2. rotations ``R_i`` fitted from the rest edges to the edges of the predicted pose ``x_t + h v*`` (exact ARAP
+   rotations, :func:`shapecorr.losses.arap.arap_rotations`); edge residuals ``r_e = e(x_t) - (R_a + R_b)/2
+   e(x_0)``; anisotropic frames ``R'_i = R_i A_i^T``; force ``f_i = R'_i sum_e ±c_e ((R'_a + R'_b)/2)^T r_e``
+   (``+`` at a, ``-`` at b: the negative gradient of ``|r_e|^2 / 2``);
+3. basis ``Psi (n, F, 3)`` at the midpoint ``x_t + h/2 v*``, ``Q_i = R'_i^T Psi_i``, graph Laplacian ``H`` of the
+   weighted edges, ``lambda' = exp(log_lambda) h``; solve (float64)
+   ``(1e-3 I + lambda' Psi^T Psi + h^2 Q^T H Q) xi = Psi^T (lambda' v* + h/2 f)``;
+4. ``v_{t+1} = Psi xi``, ``x_{t+1} = x_t + h v_{t+1}``;
+5. energy ``E_arap += sum_e c_e |e(x_{t+1}) - (R_a + R_b)/2 e(x_0)|^2 / (n N 25 / k)``.
+
+Initial velocity ``v_0 = v_{-1} = h sum_f a_f v_f(x_0)``. Loss ``E = MSE(x_N, y) + lambda_reg E_arap``, the mean
+squared error over the samples whose target is known (``mask``; partial targets) and the three coordinates.
+
+Replay (full resolution, chunked): the per-step coefficients ``xi_t`` define the velocity of any point, so every
+vertex of x runs the same recursion (steps 1 and 4, with ``v_{t+1} = velocity(x_t + h/2 v*, xi_t)``); on the
+samples it reproduces the optimized trajectory. Extrapolation (t > 1): the simulation continues on the samples
+past step N with the optimized parameters (no optimization), and the new ``xi_t`` are replayed the same way.
+Frames between steps are linear in time (the step moves each point on a straight line).
+
+Pure torch (CPU or GPU); written by hand: no library implements this scheme.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from shapecorr.axiomatic.divfree import ARAP_NORMALIZATION, PUBLISHED_KNN, PUBLISHED_LAMBDA_REG, knn_graph_edges
+from shapecorr.errors import ConfigError, NumericalError
+from shapecorr.geometry import divergence_free as df
+from shapecorr.geometry.sampling import farthest_point_sampling
+from shapecorr.losses.arap import _edge_vectors, arap_rotations
+from shapecorr.matching.baselines import LinearBlend
+from shapecorr.matching.result import MatchResult
+
+#: Adam step size (original code ``DivFreeParam.lr``).
+PUBLISHED_LR = 0.02
+#: Adam iterations (original code ``DivFreeParam.num_it``).
+PUBLISHED_ITERATIONS = 100
+#: Farthest-point samples of x (original code ``DivFreeParam.num_vert``).
+PUBLISHED_SAMPLES = 2000
+#: Initial inertia weight, optimized as a log (original code ``DivFreeParam.lambda_inertia``).
+PUBLISHED_LAMBDA_INERTIA = 0.3
+#: Ridge of the per-step linear system (original code: ``1e-3 * I``).
+PUBLISHED_RIDGE = 1e-3
+#: Default frames of :meth:`Hamiltonian.match` (as LinearBlend: 0, 1/4, ..., 1).
+HAMILTONIAN_TIMES = (0.0, 0.25, 0.5, 0.75, 1.0)
+#: Alignment MSE (box units^2, RMS 1e-5) below which the pair counts as aligned and Adam stops (project choice).
+ALIGN_TOLERANCE = 1e-10
+#: Frame times are matched to the step grid within this tolerance (in steps).
+STEP_ATOL = 1e-6
+
+
+@dataclass(frozen=True)
+class HamiltonianConfig:
+    """Parameters of :func:`hamiltonian_interpolation` (defaults: the published ones, docs/hamiltonian.md §5).
+
+    Attributes
+    ----------
+    lr, iterations : float, int
+        Adam step size and iterations.
+    n_steps : int
+        Time steps N from t = 0 to t = 1 (h = 1 / N).
+    lambda_reg : float
+        Weight of the ARAP energy.
+    lambda_inertia : float
+        Initial inertia weight (optimized as its log).
+    samples, knn : int
+        Farthest-point samples of x (clipped to the vertex count) and neighbours of their graph.
+    n_modes : int
+        Modes per axis K of the basis (3 K^3 fields).
+    extrapolate_velocity : bool
+        Predict ``v* = 2 v_t - v_{t-1}`` (True) or ``v* = v_t``.
+    ridge : float
+        Ridge of the per-step system.
+    margin : float
+        Box margin of the pair normalization.
+    convention : {"published", "original_code"}
+        Basis convention.
+    learn_anisotropy, learn_inertia : bool
+        Optimize the anisotropy matrices / the inertia weight (published: both).
+    align_tolerance : float
+        The optimization stops once the alignment MSE (box units^2) is below it: Adam normalizes the gradient,
+        so round-off gradients of an already aligned pair would otherwise take full steps (project choice).
+    chunk_size : int
+        Vertices per chunk of the full-resolution replay.
+    seed : int
+        Start vertex of the farthest-point sampling.
+    """
+
+    lr: float = PUBLISHED_LR
+    iterations: int = PUBLISHED_ITERATIONS
+    n_steps: int = df.PUBLISHED_N_STEPS
+    lambda_reg: float = PUBLISHED_LAMBDA_REG
+    lambda_inertia: float = PUBLISHED_LAMBDA_INERTIA
+    samples: int = PUBLISHED_SAMPLES
+    knn: int = PUBLISHED_KNN
+    n_modes: int = df.PUBLISHED_N_MODES
+    extrapolate_velocity: bool = True
+    ridge: float = PUBLISHED_RIDGE
+    margin: float = df.BOX_MARGIN
+    convention: str = "published"
+    learn_anisotropy: bool = True
+    learn_inertia: bool = True
+    align_tolerance: float = ALIGN_TOLERANCE
+    chunk_size: int = 1000
+    seed: int = 0
+
+    def __post_init__(self):
+        if not (self.lr > 0 and self.lambda_inertia > 0 and self.ridge > 0 and self.lambda_reg >= 0):
+            raise ConfigError("hamiltonian: lr, lambda_inertia and ridge must be positive, lambda_reg >= 0")
+        for name in ("n_steps", "samples", "knn", "n_modes", "chunk_size"):
+            if int(getattr(self, name)) < 1:
+                raise ConfigError(f"hamiltonian: {name} must be >= 1, got {getattr(self, name)}")
+        if int(self.iterations) < 0:
+            raise ConfigError(f"hamiltonian: iterations must be >= 0, got {self.iterations}")
+        if self.convention not in df.CONVENTIONS:
+            raise ConfigError(f"hamiltonian: convention must be one of {df.CONVENTIONS}, got {self.convention!r}")
+
+
+@dataclass
+class HamiltonianFit:
+    """The optimized simulation of one pair (output of :func:`hamiltonian_interpolation`).
+
+    Attributes
+    ----------
+    frames : (T, n_x, 3) float
+        Positions of all vertices of x at ``times``, in the input units of ``verts_x``; the translation between
+        the two box centres is added linearly in t (docs/hamiltonian.md §4).
+    times : (T,) float
+    coeffs : (3 K^3,) float
+        Initial field coefficients ``a``.
+    xi : (S, 3 K^3) float
+        Per-step coefficients ``xi_t`` (S >= N steps, more when extrapolating).
+    anisotropy : (n, 3, 3) float
+        The optimized ``A_i`` of the samples.
+    lambda_inertia : float
+    samples : (n,) int64
+        Indices of the samples in x.
+    energies : dict
+        ``align``, ``arap`` and ``loss`` of the final parameters.
+    history : list of (float, float)
+        ``(align, arap)`` of every Adam iteration (before its step).
+    seconds : float
+        Wall time of the whole call.
+    """
+
+    frames: torch.Tensor
+    times: torch.Tensor
+    coeffs: torch.Tensor
+    xi: torch.Tensor
+    anisotropy: torch.Tensor
+    lambda_inertia: float
+    samples: torch.Tensor
+    energies: dict = field(default_factory=dict)
+    history: list = field(default_factory=list)
+    seconds: float = 0.0
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The simulation
+# ----------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Graph:
+    """kNN graph of the samples: undirected edges (a, b), multiplicities, rest edge vectors."""
+
+    edges: torch.Tensor  # (E, 2) int64
+    weights: torch.Tensor  # (E,) float
+    rest: torch.Tensor  # (E, 3) x_0[b] - x_0[a]
+
+
+def _laplacian_apply(q: torch.Tensor, graph: _Graph) -> torch.Tensor:
+    """``H q`` for the weighted graph Laplacian H (``(H q)_a = sum_e c_e (q_a - q_b)``) of ``q (n, ...)``."""
+    a, b = graph.edges[:, 0], graph.edges[:, 1]
+    w = graph.weights.view(-1, *([1] * (q.ndim - 1))).to(q)
+    diff = w * (q[a] - q[b])
+    return torch.zeros_like(q).index_add(0, a, diff).index_add(0, b, -diff)
+
+
+def _force(x: torch.Tensor, x_pred: torch.Tensor, x0: torch.Tensor, graph: _Graph, aniso: torch.Tensor):
+    """Anisotropic ARAP force at ``x`` with rotations of the predicted pose (module docstring, step 2).
+
+    Returns
+    -------
+    force : (n, 3)
+    rest_rotated : (E, 3)
+        ``(R_a + R_b)/2 e(x_0)`` (for the energy after the step).
+    frames : (n, 3, 3)
+        ``R'_i = R_i A_i^T``.
+    """
+    rot = arap_rotations(x0, x_pred, graph.edges, graph.weights, differentiable=True)
+    rot_edge = 0.5 * (rot[graph.edges[:, 0]] + rot[graph.edges[:, 1]])
+    rest_rotated = (rot_edge @ graph.rest.unsqueeze(-1)).squeeze(-1)
+    residual = _edge_vectors(x, graph.edges) - rest_rotated
+    frames = rot @ aniso.transpose(1, 2)
+    frame_edge = 0.5 * (frames[graph.edges[:, 0]] + frames[graph.edges[:, 1]])
+    back = (frame_edge.transpose(1, 2) @ residual.unsqueeze(-1)).squeeze(-1) * graph.weights.unsqueeze(-1)
+    summed = torch.zeros_like(x).index_add(0, graph.edges[:, 0], back).index_add(0, graph.edges[:, 1], -back)
+    force = (frames @ summed.unsqueeze(-1)).squeeze(-1)
+    return force, rest_rotated, frames
+
+
+def _solve_step(mid: torch.Tensor, v_pred: torch.Tensor, force: torch.Tensor, frames: torch.Tensor, graph: _Graph,
+                lam: torch.Tensor, h: float, cfg: HamiltonianConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """Coefficients ``xi`` of the new velocity and the velocity at the samples (module docstring, step 3-4)."""
+    psi = df.basis_fields(mid, cfg.n_modes, cfg.convention)  # (n, F, 3)
+    n, f = psi.shape[0], psi.shape[1]
+    psi_flat = psi.transpose(1, 2).reshape(3 * n, f)  # rows (i, d)
+    q = frames.transpose(1, 2) @ psi.transpose(1, 2)  # (n, 3, F): R'_i^T Psi_i
+    hq = _laplacian_apply(q, graph)
+    system = lam * (psi_flat.T @ psi_flat) + (h * h) * (q.reshape(3 * n, f).T @ hq.reshape(3 * n, f))
+    rhs = psi_flat.T @ (lam * v_pred + 0.5 * h * force).reshape(3 * n)
+    system64 = system.double() + cfg.ridge * torch.eye(f, dtype=torch.float64, device=mid.device)
+    xi = torch.linalg.solve(system64, rhs.double()).to(mid.dtype)
+    if not bool(torch.isfinite(xi.detach()).all()):
+        raise NumericalError("hamiltonian: the per-step linear solve gave NaN/Inf; lower lr or check the inputs")
+    return xi, psi_flat.reshape(n, 3, f) @ xi
+
+
+def _simulate(x0: torch.Tensor, coeffs: torch.Tensor, aniso: torch.Tensor, log_lam: torch.Tensor, graph: _Graph,
+              n_total: int, cfg: HamiltonianConfig):
+    """Run ``n_total`` steps on the samples; positions after step N, the ARAP energy and every ``xi_t``."""
+    h = 1.0 / cfg.n_steps
+    lam = torch.exp(log_lam) * h
+    scale = x0.shape[0] * cfg.n_steps * ARAP_NORMALIZATION / cfg.knn
+    v = h * df.velocity(x0, coeffs, cfg.convention)
+    v_prev = v
+    x = x0
+    energy = x0.new_zeros(())
+    x_end = x0
+    xis = []
+    for step in range(n_total):
+        v_pred = 2.0 * v - v_prev if cfg.extrapolate_velocity else v
+        v_prev = v
+        force, rest_rotated, frames = _force(x, x + h * v_pred, x0, graph, aniso)
+        xi, v = _solve_step(x + 0.5 * h * v_pred, v_pred, force, frames, graph, lam, h, cfg)
+        x = x + h * v
+        xis.append(xi)
+        if step < cfg.n_steps:
+            residual = _edge_vectors(x, graph.edges) - rest_rotated
+            energy = energy + (graph.weights * residual.square().sum(-1)).sum() / scale
+        if step == cfg.n_steps - 1:
+            x_end = x
+    return x_end, energy, xis
+
+
+def _replay(points: torch.Tensor, coeffs: torch.Tensor, xis, cfg: HamiltonianConfig) -> torch.Tensor:
+    """Positions of any points after each step (``(S + 1, m, 3)``, including the start), chunked."""
+    h = 1.0 / cfg.n_steps
+    out = []
+    for start in range(0, points.shape[0], cfg.chunk_size):
+        x = points[start:start + cfg.chunk_size]
+        v = h * df.velocity(x, coeffs, cfg.convention)
+        v_prev = v
+        path = [x]
+        for xi in xis:
+            v_pred = 2.0 * v - v_prev if cfg.extrapolate_velocity else v
+            v_prev = v
+            v = df.velocity(x + 0.5 * h * v_pred, xi, cfg.convention)
+            x = x + h * v
+            path.append(x)
+        out.append(torch.stack(path, dim=0))
+    return torch.cat(out, dim=1)
+
+
+def _frames_at(path: torch.Tensor, times: torch.Tensor, n_steps: int) -> torch.Tensor:
+    """Piecewise-linear positions at ``times`` from the per-step path ``(S + 1, m, 3)``."""
+    frames = []
+    for t in times.tolist():
+        s = t * n_steps
+        k = min(int(math.floor(s + STEP_ATOL)), path.shape[0] - 1)
+        frac = s - k
+        if frac <= STEP_ATOL or k == path.shape[0] - 1:
+            frames.append(path[k])
+        else:
+            frames.append(path[k] + frac * (path[k + 1] - path[k]))
+    return torch.stack(frames, dim=0)
+
+
+def _check_inputs(verts_x, faces_x, verts_y_matched, mask, times) -> tuple[torch.Tensor, torch.Tensor]:
+    for name, v in (("verts_x", verts_x), ("verts_y_matched", verts_y_matched)):
+        if not isinstance(v, torch.Tensor) or v.ndim != 2 or v.shape[1] != 3 or not v.dtype.is_floating_point:
+            raise ConfigError(f"hamiltonian: {name} must be an (n, 3) float tensor")
+        if not bool(torch.isfinite(v).all()):
+            raise NumericalError(f"hamiltonian: {name} contains NaN or Inf")
+    if verts_y_matched.shape != verts_x.shape:
+        raise ConfigError(f"hamiltonian: verts_y_matched must be (n_x, 3) = {tuple(verts_x.shape)} (the image of "
+                          f"every vertex of x under the map), got {tuple(verts_y_matched.shape)}")
+    if faces_x is not None and (faces_x.ndim != 2 or faces_x.shape[1] != 3):
+        raise ConfigError(f"hamiltonian: faces_x must be (f, 3), got {tuple(faces_x.shape)}")
+    if mask is None:
+        mask = torch.ones(verts_x.shape[0], dtype=torch.bool, device=verts_x.device)
+    mask = torch.as_tensor(mask, device=verts_x.device)
+    if mask.shape != (verts_x.shape[0],) or mask.dtype != torch.bool:
+        raise ConfigError(f"hamiltonian: mask must be a (n_x,) bool tensor, got {tuple(mask.shape)} {mask.dtype}")
+    if not bool(mask.any()):
+        raise ConfigError("hamiltonian: the mask marks no vertex of x with a known target")
+    times = torch.as_tensor(times, dtype=torch.float32).reshape(-1)
+    if times.numel() == 0 or not bool(torch.isfinite(times).all()) or bool((times < 0).any()):
+        raise ConfigError(f"hamiltonian: times must be finite and >= 0 (the simulation runs forward), got "
+                          f"{times.tolist()}")
+    return mask, times
+
+
+def hamiltonian_interpolation(verts_x: torch.Tensor, faces_x: torch.Tensor | None, verts_y_matched: torch.Tensor,
+                              config: HamiltonianConfig | dict | None = None, times=HAMILTONIAN_TIMES,
+                              mask: torch.Tensor | None = None) -> HamiltonianFit:
+    """Optimize the Hamiltonian simulation moving x onto its targets and return its frames (module docstring).
+
+    Parameters
+    ----------
+    verts_x : (n_x, 3) float
+        The shape x (any units; the pair is placed in the unit box internally).
+    faces_x : (f, 3) int64 or None
+        Triangles of x (only checked; the simulation runs on a kNN graph of samples, as the original).
+    verts_y_matched : (n_x, 3) float
+        Target position of every vertex of x (``verts_y[p2p]`` for a map x -> y); rows outside ``mask`` are
+        ignored.
+    config : HamiltonianConfig or dict, optional
+        Parameters (default: the published ones).
+    times : sequence of float
+        Frame times, >= 0 (t > 1 continues the simulation past step N).
+    mask : (n_x,) bool, optional
+        Vertices of x whose target is known (partial targets); default all. The alignment term is the mean
+        squared error over the masked samples only; the ARAP energy and the dynamics cover every sample.
+
+    Returns
+    -------
+    HamiltonianFit
+    """
+    start_time = time.perf_counter()
+    cfg = config if isinstance(config, HamiltonianConfig) else HamiltonianConfig(**(config or {}))
+    mask, times = _check_inputs(verts_x, faces_x, verts_y_matched, mask, times)
+    vx = verts_x.detach().to(torch.float32)
+    vy = verts_y_matched.detach().to(device=vx.device, dtype=torch.float32)
+    box_x, box_y = df.box_normalization(vx, vy[mask], cfg.margin)
+    bx, by = box_x.to_box(vx), box_y.to_box(vy)
+    n_samples = min(int(cfg.samples), bx.shape[0])
+    rng = np.random.default_rng(cfg.seed)
+    samples = torch.from_numpy(farthest_point_sampling(bx.cpu(), n_samples, start=int(rng.integers(bx.shape[0]))))
+    samples = samples.to(vx.device)
+    x0 = bx[samples]
+    knn = min(int(cfg.knn), n_samples - 1)
+    if knn < 1:
+        raise ConfigError("hamiltonian: x needs at least 2 vertices")
+    edges, counts = knn_graph_edges(x0, knn)
+    graph = _Graph(edges, counts, _edge_vectors(x0, edges))
+    keep = mask[samples]
+    if not bool(keep.any()):
+        raise ConfigError("hamiltonian: no farthest-point sample of x has a known target; raise model.samples")
+    target = by[samples][keep]
+
+    coeffs = torch.zeros(df.n_fields(cfg.n_modes), device=vx.device, requires_grad=True)
+    aniso = torch.eye(3, device=vx.device).repeat(n_samples, 1, 1).requires_grad_(cfg.learn_anisotropy)
+    log_lam = torch.tensor(math.log(cfg.lambda_inertia), device=vx.device).requires_grad_(cfg.learn_inertia)
+    params = [p for p in (coeffs, aniso, log_lam) if p.requires_grad]
+    optimizer = torch.optim.Adam(params, lr=cfg.lr)
+    history = []
+    with torch.enable_grad():
+        for _ in range(int(cfg.iterations)):
+            optimizer.zero_grad(set_to_none=True)
+            x_end, e_arap, _ = _simulate(x0, coeffs, aniso, log_lam, graph, cfg.n_steps, cfg)
+            e_align = torch.nn.functional.mse_loss(x_end[keep], target)
+            loss = e_align + cfg.lambda_reg * e_arap
+            if not bool(torch.isfinite(loss.detach())):
+                raise NumericalError("hamiltonian: the energy became non-finite; lower model.lr")
+            if float(e_align.detach()) < cfg.align_tolerance:
+                break
+            loss.backward()
+            optimizer.step()
+            history.append((float(e_align.detach()), float(e_arap.detach())))
+
+    n_total = max(cfg.n_steps, int(math.ceil(float(times.max()) * cfg.n_steps - STEP_ATOL)))
+    with torch.no_grad():
+        x_end, e_arap, xis = _simulate(x0, coeffs.detach(), aniso.detach(), log_lam.detach(), graph, n_total, cfg)
+        e_align = torch.nn.functional.mse_loss(x_end[keep], target)
+        energies = {"align": float(e_align), "arap": float(e_arap), "loss": float(e_align + cfg.lambda_reg * e_arap)}
+        path = _replay(bx, coeffs.detach(), xis, cfg)
+        if not bool(torch.isfinite(path).all()):
+            raise NumericalError("hamiltonian: the full-resolution replay diverged (NaN/Inf)")
+        frames = _frames_at(path, times, cfg.n_steps)
+        shift = (box_y.center - box_x.center).to(frames)
+        frames = box_x.from_box(frames) + times.to(frames).reshape(-1, 1, 1) * shift
+    return HamiltonianFit(
+        frames=frames.to(verts_x.dtype), times=times, coeffs=coeffs.detach(), xi=torch.stack(xis, dim=0),
+        anisotropy=aniso.detach(), lambda_inertia=float(torch.exp(log_lam.detach())), samples=samples,
+        energies=energies, history=history, seconds=time.perf_counter() - start_time,
+    )
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The matcher
+# ----------------------------------------------------------------------------------------------------------
+class Hamiltonian(LinearBlend):
+    """Hamiltonian interpolation around any matcher (configs/model/hamiltonian.yaml).
+
+    The maps are those of the wrapped matcher; the frames are the optimized simulation moving every vertex of
+    x towards its image ``y[p2p]`` (:func:`hamiltonian_interpolation`). It reuses LinearBlend's wrapping (the
+    matcher's ``required_operators`` / ``needs_ground_truth``, ``match`` at ``interp_times``, a
+    ``torch.nn.Module`` so that ``.eval()`` / ``.to()`` reach a wrapped learned model) and replaces the
+    straight lines by the simulation.
+
+    Parameters
+    ----------
+    matcher : Matcher
+        Anything with ``match(x, y) -> MatchResult`` (default in the config: ``identity_gt``).
+    interp_times : sequence of float
+        Frames of :meth:`match`, >= 0; :meth:`interpolate` takes any times >= 0.
+    **config
+        Fields of :class:`HamiltonianConfig`.
+    """
+
+    def __init__(self, matcher, interp_times=HAMILTONIAN_TIMES, **config):
+        super().__init__(matcher, interp_times)
+        if min(self.interp_times) < 0:
+            raise ConfigError(f"Hamiltonian interp_times must be >= 0, got {list(self.interp_times)}")
+        unknown = set(config) - set(HamiltonianConfig.__dataclass_fields__)
+        if unknown:
+            raise ConfigError(f"Hamiltonian: unknown options {sorted(unknown)} (configs/model/hamiltonian.yaml)")
+        self.config = HamiltonianConfig(**config)
+
+    def interpolate(self, x, y, times) -> MatchResult:
+        """The wrapped matcher's maps and the Hamiltonian frames at ``times (T,)`` (values >= 0)."""
+        result = self.matcher.match(x, y)
+        p2p = result.p2p.to(x.verts.device)
+        target = y.verts.detach().to(x.verts)[p2p]
+        fit = hamiltonian_interpolation(x.verts, x.faces, target, self.config, times)
+        extras = dict(result.extras)
+        extras.update({"energies": fit.energies, "fit_seconds": fit.seconds, "lambda_inertia": fit.lambda_inertia})
+        return MatchResult(p2p=result.p2p, p2p_inv=result.p2p_inv, deformation=fit.frames,
+                           times=fit.times.to(fit.frames.device), extras=extras)
