@@ -45,7 +45,7 @@ from shapecorr.axiomatic.divfree import ARAP_NORMALIZATION, PUBLISHED_KNN, PUBLI
 from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.geometry import divergence_free as df
 from shapecorr.geometry.sampling import farthest_point_sampling
-from shapecorr.losses.arap import _edge_vectors, arap_rotations
+from shapecorr.losses.arap import arap_rotations, edge_vectors
 from shapecorr.matching.baselines import LinearBlend
 from shapecorr.matching.result import MatchResult
 
@@ -207,7 +207,7 @@ def _force(x: torch.Tensor, x_pred: torch.Tensor, x0: torch.Tensor, graph: _Grap
     rot = arap_rotations(x0, x_pred, graph.edges, graph.weights, differentiable=True)
     rot_edge = 0.5 * (rot[graph.edges[:, 0]] + rot[graph.edges[:, 1]])
     rest_rotated = (rot_edge @ graph.rest.unsqueeze(-1)).squeeze(-1)
-    residual = _edge_vectors(x, graph.edges) - rest_rotated
+    residual = edge_vectors(x, graph.edges) - rest_rotated
     frames = rot @ aniso.transpose(1, 2)
     frame_edge = 0.5 * (frames[graph.edges[:, 0]] + frames[graph.edges[:, 1]])
     back = (frame_edge.transpose(1, 2) @ residual.unsqueeze(-1)).squeeze(-1) * graph.weights.unsqueeze(-1)
@@ -253,7 +253,7 @@ def _simulate(x0: torch.Tensor, coeffs: torch.Tensor, aniso: torch.Tensor, log_l
         x = x + h * v
         xis.append(xi)
         if step < cfg.n_steps:
-            residual = _edge_vectors(x, graph.edges) - rest_rotated
+            residual = edge_vectors(x, graph.edges) - rest_rotated
             energy = energy + (graph.weights * residual.square().sum(-1)).sum() / scale
         if step == cfg.n_steps - 1:
             x_end = x
@@ -360,7 +360,7 @@ def hamiltonian_interpolation(verts_x: torch.Tensor, faces_x: torch.Tensor | Non
     if knn < 1:
         raise ConfigError("hamiltonian: x needs at least 2 vertices")
     edges, counts = knn_graph_edges(x0, knn)
-    graph = _Graph(edges, counts, _edge_vectors(x0, edges))
+    graph = _Graph(edges, counts, edge_vectors(x0, edges))
     keep = mask[samples]
     if not bool(keep.any()):
         raise ConfigError("hamiltonian: no farthest-point sample of x has a known target; raise model.samples")

@@ -82,7 +82,7 @@ def _check_weights(edge_weights: torch.Tensor | None, n_edges: int) -> None:
         raise ConfigError("edge_weights must be finite and non-negative")
 
 
-def _edge_vectors(verts: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+def edge_vectors(verts: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
     """``v[b] - v[a]`` for every edge: (..., E, 3)."""
     return verts.index_select(-2, edges[:, 1]) - verts.index_select(-2, edges[:, 0])
 
@@ -111,7 +111,7 @@ def arap_covariances(
     _check_pose_pair(verts_0, verts_t, edges)
     _check_weights(edge_weights, edges.shape[0])
     edges = edges.to(device=verts_0.device, dtype=torch.int64)
-    e0, et = _edge_vectors(verts_0, edges), _edge_vectors(verts_t, edges)
+    e0, et = edge_vectors(verts_0, edges), edge_vectors(verts_t, edges)
     outer = et.unsqueeze(-1) * e0.unsqueeze(-2)  # (..., E, 3, 3)
     if edge_weights is not None:
         outer = outer * edge_weights.to(outer).view(-1, 1, 1)
@@ -255,7 +255,7 @@ def arap_energy(
         rotations = arap_rotations(verts_0, verts_t, edges, edge_weights, differentiable=not detach_rotations)
     elif rotations.shape != (*verts_0.shape, 3):
         raise ConfigError(f"rotations must have shape {(*verts_0.shape, 3)}, got {tuple(rotations.shape)}")
-    e0, et = _edge_vectors(verts_0, edges), _edge_vectors(verts_t, edges)
+    e0, et = edge_vectors(verts_0, edges), edge_vectors(verts_t, edges)
     rot_a = rotations.index_select(-3, edges[:, 0])
     rot_b = rotations.index_select(-3, edges[:, 1])
     if mode == "average":

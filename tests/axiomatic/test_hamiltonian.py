@@ -128,13 +128,13 @@ def test_matcher_and_config():
 
 def test_replay_reproduces_the_simulated_samples():
     from shapecorr.axiomatic.divfree import knn_graph_edges
-    from shapecorr.axiomatic.hamiltonian import _edge_vectors, _Graph, _replay, _simulate
+    from shapecorr.axiomatic.hamiltonian import _Graph, _replay, _simulate, edge_vectors
 
     gen = torch.Generator().manual_seed(1)
     x0 = 0.3 + 0.4 * torch.rand(80, 3, generator=gen)
     cfg = HamiltonianConfig(n_modes=3, knn=5)
     edges, counts = knn_graph_edges(x0, cfg.knn)
-    graph = _Graph(edges, counts, _edge_vectors(x0, edges))
+    graph = _Graph(edges, counts, edge_vectors(x0, edges))
     coeffs = 0.5 * torch.randn(df.n_fields(3), generator=gen)
     aniso = torch.eye(3) + 0.05 * torch.randn(80, 3, 3, generator=gen)
     x_end, energy, xis = _simulate(x0, coeffs, aniso, torch.tensor(np.log(0.3)), graph, 20, cfg)
