@@ -71,6 +71,23 @@ def _smooth_bumpy_sphere(subdivisions: int, seed: int = 0, amplitude: float = 0.
     return v * (1.0 + amplitude * bump[:, None]), f
 
 
+def _asymmetric_blob(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    v = points / np.linalg.norm(points, axis=1, keepdims=True)
+    centres = rng.normal(size=(5, 3))
+    centres /= np.linalg.norm(centres, axis=1, keepdims=True)
+    amplitudes = np.array([0.5, 0.35, 0.3, -0.25, 0.4])
+    radius = 1.0 + sum(a * np.exp(-np.sum((v - c) ** 2, 1) / 0.3) for a, c in zip(amplitudes, centres))
+    return v * radius[:, None] * np.array([1.4, 1.0, 0.8])
+
+
+@pytest.fixture(scope="session")
+def asymmetric_blob() -> Callable[[np.ndarray, np.random.Generator], np.ndarray]:
+    """``asymmetric_blob(points (n, 3), rng) -> (n, 3)``: sphere points pushed out radially by 5 Gaussian bumps
+    at random directions (drawn from ``rng``) and stretched by (1.4, 1, 0.8): a bumpy ellipsoid with no
+    intrinsic symmetry, star-shaped over the unit sphere."""
+    return _asymmetric_blob
+
+
 @pytest.fixture(scope="session")
 def unit_sphere() -> Callable[..., Mesh]:
     """``unit_sphere(subdivisions=2) -> (verts (n, 3) float64, faces (f, 3) int64)``, vertices of norm 1."""

@@ -37,23 +37,8 @@ SMALL = SmoothShellsConfig(k_max=40, k_array_length=6, num_mcmc=6, problem_size_
 SMALL_JOINT = replace(SMALL, rigid_joint=True)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
-def _blob(points: np.ndarray) -> np.ndarray:
-    """An asymmetric bumpy ellipsoid (no intrinsic symmetry)."""
-    rng = np.random.default_rng(0)
-    u = points / np.linalg.norm(points, axis=1, keepdims=True)
-    centres = rng.normal(size=(5, 3))
-    centres /= np.linalg.norm(centres, axis=1, keepdims=True)
-    amplitudes = np.array([0.5, 0.35, 0.3, -0.25, 0.4])
-    radius = 1.0 + sum(a * np.exp(-np.sum((u - c) ** 2, 1) / 0.3) for a, c in zip(amplitudes, centres))
-    return u * radius[:, None] * np.array([1.4, 1.0, 0.8])
+# Small tensors: one torch thread (fixture in tests/conftest.py).
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def _shape(verts, faces, name, config=SMALL):
@@ -70,9 +55,10 @@ def _rotation(rng) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def base():
+def base(asymmetric_blob):
     ico = trimesh.creation.icosphere(subdivisions=3)
-    verts, faces = remesh(_blob(np.asarray(ico.vertices)), np.asarray(ico.faces), 400)
+    blob = asymmetric_blob(np.asarray(ico.vertices), np.random.default_rng(0))
+    verts, faces = remesh(blob, np.asarray(ico.faces), 400)
     verts = verts * np.sqrt(0.44 / triangle_areas(verts, faces).sum())
     verts = verts - verts.mean(0)
     edge = float(np.linalg.norm(verts[faces[:, 0]] - verts[faces[:, 1]], axis=1).mean())

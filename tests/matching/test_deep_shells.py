@@ -42,16 +42,6 @@ SMALL_REFINE = dict(refine_k_max=40, refine_levels=12)
 pytestmark = pytest.mark.usefixtures("single_thread")
 
 
-def _blob(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """An asymmetric bumpy ellipsoid (no intrinsic symmetry), star-shaped over the unit sphere."""
-    u = points / np.linalg.norm(points, axis=1, keepdims=True)
-    centres = rng.normal(size=(5, 3))
-    centres /= np.linalg.norm(centres, axis=1, keepdims=True)
-    amplitudes = np.array([0.5, 0.35, 0.3, -0.25, 0.4])
-    radius = 1.0 + sum(a * np.exp(-np.sum((u - c) ** 2, 1) / 0.3) for a, c in zip(amplitudes, centres))
-    return u * radius[:, None] * np.array([1.4, 1.0, 0.8])
-
-
 def _bend(p: np.ndarray) -> np.ndarray:
     """A smooth non-rigid deformation: rotation about the x axis by an angle growing along x."""
     angle = 0.6 * p[:, 0]
@@ -70,7 +60,7 @@ def _spectral(verts, faces, name):
 
 
 @pytest.fixture(scope="module")
-def pair():
+def pair(asymmetric_blob):
     """X: a bumpy blob (642 vertices, area 0.44); Y: X remeshed (~600 vertices) and bent.
 
     Ground truth: for each vertex of X the nearest vertex of the remeshed (undeformed) Y. "Good features"
@@ -79,7 +69,7 @@ def pair():
     rng = np.random.default_rng(0)
     ico = trimesh.creation.icosphere(subdivisions=3)
     faces_x = np.asarray(ico.faces)
-    verts_x = _blob(np.asarray(ico.vertices), rng)
+    verts_x = asymmetric_blob(np.asarray(ico.vertices), rng)
     verts_x *= np.sqrt(0.44 / triangle_areas(verts_x, faces_x).sum())
     rest_y, faces_y = remesh(verts_x, faces_x, 600)
     gt = cKDTree(rest_y).query(verts_x)[1]
