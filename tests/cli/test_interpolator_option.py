@@ -2,7 +2,8 @@
 
 A tiny FAUST-style folder: two bent, vertex-permuted icospheres (162 vertices) in different units, with ``.vts``
 ground truth on every vertex, evaluated on one pair through ``evaluate()`` (the function ``evaluate.py`` calls).
-``model=identity_gt`` (the ground-truth map, which does not interpolate) is wrapped by the interpolators.
+``model=identity_gt`` (the ground-truth map, which does not interpolate) is wrapped by the interpolators. The
+issue's command (``model=descriptor_nn interpolator=hamiltonian``) runs once on the tiny synthetic preset.
 """
 
 from __future__ import annotations
@@ -14,10 +15,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapecorr.cli.evaluate import build_matcher, evaluate
+from shapecorr.cli.evaluate import build_matcher, evaluate, with_interpolator
 from shapecorr.data.io import read_mesh, write_mesh, write_vts
 from shapecorr.errors import ConfigError
 from shapecorr.eval.export import read_times
+from shapecorr.matching.baselines import LinearBlend
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -130,3 +132,29 @@ def test_no_interpolator_leaves_the_model_alone(folder, tmp_path):
     # interp_times null: the interpolator's own default frames
     cfg = _cfg(folder, tmp_path / "default", "model=identity_gt", "interpolator=linear_blend", "interp_times=null")
     assert build_matcher(cfg, "cpu").interp_times == (0.0, 0.25, 0.5, 0.75, 1.0)
+
+
+def test_a_self_interpolating_model_keeps_its_maps_under_the_interpolator(folder, tmp_path):
+    class SelfInterpolating:  # stands for NeuroMorph / divfree: match and its own interpolate
+        def match(self, x, y):
+            raise AssertionError("not called here")
+
+        def interpolate(self, x, y, times):
+            raise AssertionError("not called here")
+
+    model = SelfInterpolating()
+    cfg = _cfg(folder, tmp_path / "self", "model=identity_gt", "interpolator=linear_blend", "interp_times=[0,1,1.5]")
+    wrapped = with_interpolator(cfg, model)
+    assert isinstance(wrapped, LinearBlend) and wrapped.matcher is model and wrapped.interp_times == (0.0, 1.0, 1.5)
+
+
+def test_the_issue_command_on_the_tiny_synthetic_preset(compose_config, tmp_path):
+    # python evaluate.py model=descriptor_nn interpolator=hamiltonian interp_times=[0,0.5,1,1.5] (small fit)
+    out = tmp_path / "out"
+    cfg = compose_config("evaluate", overrides=[
+        "data=synthetic", "data.synthetic.preset=tiny", "max_pairs=1", f"paths.cache_dir={tmp_path / 'cache'}",
+        f"output_dir={out}", "progress=false", "n_examples=0", "model=descriptor_nn", "interpolator=hamiltonian",
+        *TINY_HAMILTONIAN, f"interp_times=[{','.join(map(str, TIMES))}]"])
+    result = evaluate(cfg)
+    _check_interpolation_metrics(out, result)
+    _frames(out)
