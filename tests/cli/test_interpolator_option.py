@@ -13,10 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import trimesh
 
 from shapecorr.cli.evaluate import build_matcher, evaluate, with_interpolator
-from shapecorr.data.io import read_mesh, write_mesh, write_vts
+from shapecorr.data.io import read_mesh
 from shapecorr.errors import ConfigError
 from shapecorr.eval.export import read_times
 from shapecorr.matching.baselines import LinearBlend
@@ -33,25 +32,9 @@ TINY_HAMILTONIAN = ["interpolator.n_modes=2", "interpolator.iterations=2", "inte
 
 
 @pytest.fixture(scope="module")
-def folder(tmp_path_factory, compose_config):
+def folder(tmp_path_factory, compose_config, bent_sphere_folder):
     """``(root, cache_dir, compose_config)``."""
-    root = tmp_path_factory.mktemp("interpolator_folder")
-    for sub in ("off", "corres", "splits"):
-        (root / sub).mkdir()
-    mesh = trimesh.creation.icosphere(subdivisions=2)
-    base, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    rng = np.random.default_rng(0)
-    for k, name in enumerate(NAMES):
-        perm = rng.permutation(len(base))
-        bent = base * [1.0 + 0.2 * k, 1.0, 1.0 - 0.1 * k]
-        bent[:, 2] += 0.3 * np.sin(1.5 * bent[:, 1]) * k
-        bent = bent * (1.0 + 2.0 * k) + [5.0 * k, -2.0, 1.0]  # different units per shape
-        verts = np.empty_like(bent)
-        verts[perm] = bent
-        write_mesh(root / "off" / f"{name}.off", verts, perm[faces])
-        write_vts(root / "corres" / f"{name}.vts", perm)
-    for split in ("test", "train"):
-        (root / "splits" / f"{split}.txt").write_text("\n".join(NAMES) + "\n")
+    root = bent_sphere_folder(tmp_path_factory.mktemp("interpolator_folder"), NAMES)
     return root, tmp_path_factory.mktemp("interpolator_cache"), compose_config
 
 
