@@ -9,6 +9,8 @@
   no symmetry left), :func:`smooth_bumpy_sphere` (smooth Gaussian bumps: every Laplacian eigenvalue simple).
   They are factories: ``def test_x(unit_sphere): v, f = unit_sphere(2)``; subdivisions 1 / 2 / 3 / 4 give
   42 / 162 / 642 / 2562 vertices.
+* :func:`bent_sphere_folder`: writes a tiny FAUST-style dataset folder (``off/``, ``corres/``, ``splits/``) for
+  the ``evaluate.py`` tests.
 """
 
 from __future__ import annotations
@@ -86,6 +88,36 @@ def asymmetric_blob() -> Callable[[np.ndarray, np.random.Generator], np.ndarray]
     at random directions (drawn from ``rng``) and stretched by (1.4, 1, 0.8): a bumpy ellipsoid with no
     intrinsic symmetry, star-shaped over the unit sphere."""
     return _asymmetric_blob
+
+
+def _bent_sphere_folder(root: Path, names: Sequence[str]) -> Path:
+    from shapecorr.data.io import write_mesh, write_vts
+
+    for sub in ("off", "corres", "splits"):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    base, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    rng = np.random.default_rng(0)
+    for k, name in enumerate(names):
+        perm = rng.permutation(len(base))
+        bent = base * [1.0 + 0.2 * k, 1.0, 1.0 - 0.1 * k]
+        bent[:, 2] += 0.3 * np.sin(1.5 * bent[:, 1]) * (k % 2)
+        bent = bent * (1.0 + 2.0 * k) + [5.0 * k, -2.0, 1.0]  # different units per shape
+        verts = np.empty_like(bent)
+        verts[perm] = bent
+        write_mesh(root / "off" / f"{name}.off", verts, perm[faces])
+        write_vts(root / "corres" / f"{name}.vts", perm)
+    for split in ("test", "train"):
+        (root / "splits" / f"{split}.txt").write_text("\n".join(names) + "\n")
+    return root
+
+
+@pytest.fixture(scope="session")
+def bent_sphere_folder() -> Callable[[Path, Sequence[str]], Path]:
+    """``bent_sphere_folder(root, names) -> root``: one bent, vertex-permuted icosphere (162 vertices) per name,
+    in different units and positions (so that frames in the wrong units would show), as ``off/<name>.off`` with
+    ``.vts`` ground truth on every vertex (``corres/``) and every shape in ``splits/{test,train}.txt``."""
+    return _bent_sphere_folder
 
 
 @pytest.fixture(scope="session")

@@ -21,7 +21,8 @@ Options: ``configs/evaluate.yaml``. Steps of ``task=match`` (the default):
    ``examples/<x>__<y>.png``.
 
 Interpolating matchers (those with an ``interpolate(x, y, times)`` method, e.g. NeuroMorph or
-``model=linear_blend``) are called at ``interp_times`` (default ``[0, 0.25, 0.5, 0.75, 1]``; values > 1
+``model=linear_blend``, or any matcher with ``interpolator=linear_blend | hamiltonian``: see
+:func:`with_interpolator`) are called at ``interp_times`` (default ``[0, 0.25, 0.5, 0.75, 1]``; values > 1
 extrapolate; ``null`` = the matcher's own default frames). Each pair's frames are written (``write_interp``)
 as ``OUT/interp/<x>__<y>/t_XX.ply`` (XX = index into ``interp_times``, in x's input units) with
 ``times.txt`` (line XX = time of t_XX). The metrics compare the frame at t = 1 with y (Chamfer distance,
@@ -74,7 +75,7 @@ from shapecorr.data.operators import required_request
 from shapecorr.errors import ConfigError
 from shapecorr.eval import multi_shape, protocol, reports
 from shapecorr.eval.export import INTERP_DIR, map_paths
-from shapecorr.matching.baselines import PrecomputedMaps
+from shapecorr.matching.baselines import LinearBlend, PrecomputedMaps
 from shapecorr.matching.result import Matcher
 from shapecorr.viz.pck import write_pck_png
 from shapecorr.viz.render import render_correspondence
@@ -131,7 +132,47 @@ def build_matcher(cfg: DictConfig, device: torch.device):
         matcher = matcher.eval().to(device)
     if not isinstance(matcher, Matcher):
         raise ConfigError(f"{type(matcher).__name__} has no match(x, y) method; it cannot be evaluated")
-    return matcher
+    return with_interpolator(cfg, matcher)
+
+
+def interpolator_config(cfg: DictConfig) -> DictConfig | None:
+    """The ``interpolator`` node (``configs/interpolator/<name>.yaml``), or None for ``interpolator=none``."""
+    node = cfg.get("interpolator")
+    if node is None or len(node) == 0:
+        return None
+    if "_target_" not in node:
+        raise ConfigError("the interpolator config has no _target_ (configs/interpolator/<name>.yaml: "
+                          "interpolator=none | linear_blend | hamiltonian)")
+    return node
+
+
+def with_interpolator(cfg: DictConfig, matcher):
+    """``matcher`` wrapped in the interpolator selected by ``interpolator=<name>`` (itself when none).
+
+    The interpolator (a :class:`~shapecorr.matching.baselines.LinearBlend` or a subclass, e.g. the Hamiltonian
+    interpolation) is instantiated with ``matcher=matcher`` and ``interp_times=cfg.interp_times`` (its own default
+    frames when null); it keeps the matcher's maps and computes the frames itself. A model that interpolates by
+    itself (NeuroMorph, divfree) may be wrapped: its maps are kept and its own frames replaced. A model that is
+    already such a wrapper (``model=linear_blend`` / ``model=hamiltonian``) is refused: wrap its matcher instead.
+    """
+    node = interpolator_config(cfg)
+    if node is None:
+        return matcher
+    if isinstance(matcher, LinearBlend):
+        raise ConfigError(
+            f"interpolator={node._target_.rsplit('.', 1)[-1]} on top of {type(matcher).__name__}, which already "
+            "interpolates the maps of its model.matcher: use the interpolator on that matcher "
+            "(e.g. model=identity_gt interpolator=hamiltonian), or drop interpolator= (interpolator=none)"
+        )
+    times = interp_times_option(cfg)
+    kwargs = {"matcher": matcher} if times is None else {"matcher": matcher, "interp_times": list(times)}
+    try:
+        wrapped = hydra.utils.instantiate(node, _convert_="object", **kwargs)
+    except hydra.errors.InstantiationException as err:
+        raise ConfigError(f"cannot build the interpolator: {err}") from None
+    if not (isinstance(wrapped, Matcher) and protocol.interpolates(wrapped)):
+        raise ConfigError(f"interpolator {node._target_} has no interpolate(x, y, times) method")
+    return wrapped
 
 
 def _matcher_name(matcher) -> str:
@@ -389,6 +430,8 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     fingerprint = {
         "matcher": "maps_dir" if cfg.get("maps_dir") else _matcher_name(matcher),
         "model": OmegaConf.to_container(cfg.model, resolve=True) if cfg.get("model") is not None else None,
+        **({"interpolator": OmegaConf.to_container(interpolator_config(cfg), resolve=True)}
+           if interpolator_config(cfg) is not None else {}),  # only when set: older run.json files still match
         "ckpt_path": str(cfg.ckpt_path) if cfg.get("ckpt_path") else None,
         "maps_dir": str(cfg.maps_dir) if cfg.get("maps_dir") else None,
         "data_root": str(shapes.root.resolve()),

@@ -15,11 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import trimesh
 from scipy.spatial import cKDTree
 
 from shapecorr.cli.evaluate import evaluate
-from shapecorr.data.io import read_mesh, write_mesh, write_vts
+from shapecorr.data.io import read_mesh
 from shapecorr.eval import metrics
 from shapecorr.eval.export import read_times
 
@@ -31,25 +30,9 @@ BLEND = ["model=linear_blend", "model.matcher.descriptor=hks"]
 
 
 @pytest.fixture(scope="module")
-def folder(tmp_path_factory, compose_config):
+def folder(tmp_path_factory, compose_config, bent_sphere_folder):
     """``(root, cache_dir, compose_config)``."""
-    root = tmp_path_factory.mktemp("interp_folder")
-    for sub in ("off", "corres", "splits"):
-        (root / sub).mkdir()
-    mesh = trimesh.creation.icosphere(subdivisions=2)
-    base, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    rng = np.random.default_rng(0)
-    for k, name in enumerate(NAMES):
-        perm = rng.permutation(len(base))
-        bent = base * [1.0 + 0.2 * k, 1.0, 1.0 - 0.1 * k]
-        bent[:, 2] += 0.3 * np.sin(1.5 * bent[:, 1]) * (k % 2)
-        bent = bent * (1.0 + 2.0 * k) + [5.0 * k, -2.0, 1.0]  # different units per shape
-        verts = np.empty_like(bent)
-        verts[perm] = bent
-        write_mesh(root / "off" / f"{name}.off", verts, perm[faces])
-        write_vts(root / "corres" / f"{name}.vts", perm)
-    (root / "splits" / "test.txt").write_text("\n".join(NAMES) + "\n")
-    (root / "splits" / "train.txt").write_text("\n".join(NAMES) + "\n")
+    root = bent_sphere_folder(tmp_path_factory.mktemp("interp_folder"), NAMES)
     return root, tmp_path_factory.mktemp("interp_cache"), compose_config
 
 
