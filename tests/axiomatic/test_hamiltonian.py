@@ -14,7 +14,8 @@ from shapecorr.eval.metrics import mesh_volume
 from shapecorr.geometry import divergence_free as df
 from shapecorr.matching.result import MatchResult
 
-CONFIG = Path(__file__).resolve().parents[2] / "configs" / "model" / "hamiltonian.yaml"
+#: The published parameters (read by both model=hamiltonian and interpolator=hamiltonian).
+CONFIG = Path(__file__).resolve().parents[2] / "configs" / "interpolator" / "hamiltonian.yaml"
 # Few modes and iterations so that each fit takes a few seconds on one CPU thread.
 FAST = {"n_modes": 3, "iterations": 20, "lr": 0.05}
 
@@ -111,8 +112,12 @@ class _Sample:
         self.verts, self.faces = verts, faces
 
 
-def test_matcher_and_config():
+def test_matcher_and_config(compose_config):
     cfg = OmegaConf.load(CONFIG)
+    # model=hamiltonian composes the same parameters around its wrapped matcher
+    model_cfg = compose_config("evaluate", ["model=hamiltonian"]).model
+    assert model_cfg.matcher._target_.endswith("IdentityGT")
+    assert {k: model_cfg[k] for k in cfg if k != "_target_"} == {k: cfg[k] for k in cfg if k != "_target_"}
     published = {key: cfg[key] for key in ("lr", "iterations", "n_steps", "lambda_reg", "samples", "knn", "n_modes")}
     assert published == {"lr": 0.02, "iterations": 100, "n_steps": 16, "lambda_reg": 20.0, "samples": 2000, "knn": 5,
                          "n_modes": 8}
