@@ -134,6 +134,27 @@ def build_matcher(cfg: DictConfig, device: torch.device):
     return matcher
 
 
+def apply_postprocess(cfg: DictConfig, matcher):
+    """``matcher`` wrapped by the ``postprocess=`` group's refinement (e.g. ``postprocess=smooth_shells``), if any.
+
+    The group's config is a partial (``_partial_: true``) called with the built matcher as ``matcher``; the
+    wrapper's ``required_operators`` then include the refinement's. Only ``evaluate.py`` applies it (training
+    validation calls the model's own ``match``).
+    """
+    post_cfg = cfg.get("postprocess")
+    if post_cfg is None:
+        return matcher
+    if "_target_" not in post_cfg:
+        raise ConfigError("the postprocess config has no _target_ (use postprocess=smooth_shells or postprocess=null)")
+    try:
+        wrapped = hydra.utils.instantiate(post_cfg, _convert_="object", _partial_=True)(matcher=matcher)
+    except hydra.errors.InstantiationException as err:
+        raise ConfigError(f"cannot build the postprocess step: {err}") from None
+    if not isinstance(wrapped, Matcher):
+        raise ConfigError(f"{type(wrapped).__name__} has no match(x, y) method; it cannot post-process a matcher")
+    return wrapped
+
+
 def _matcher_name(matcher) -> str:
     return f"{type(matcher).__module__}.{type(matcher).__qualname__}"
 
@@ -364,7 +385,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
         out_dir = Path(str(cfg.output_dir))
         device = resolve_device(str(cfg.device))
         rank, world = _init_distributed(device)
-        matcher = build_matcher(cfg, device)
+        matcher = apply_postprocess(cfg, build_matcher(cfg, device))
         dm = hydra.utils.instantiate(cfg.data, _convert_="object")
         view = tuple(OmegaConf.to_container(cfg.view, resolve=True))
         settings = protocol.EvalSettings(
@@ -396,6 +417,8 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
         "geodesics": settings.geodesics,
         "normalization": repr(shapes.normalization),
     }
+    if cfg.get("postprocess") is not None:
+        fingerprint["postprocess"] = OmegaConf.to_container(cfg.postprocess, resolve=True)
     if protocol.interpolates(matcher):
         fingerprint["interp_times"] = None if settings.interp_times is None else list(settings.interp_times)
     matching = matching_option(cfg, matcher)  # G-MSM: multi-shape matching over the split (new in issue 13)
