@@ -132,7 +132,8 @@ def build_matcher(cfg: DictConfig, device: torch.device):
         matcher = matcher.eval().to(device)
     if not isinstance(matcher, Matcher):
         raise ConfigError(f"{type(matcher).__name__} has no match(x, y) method; it cannot be evaluated")
-    return with_interpolator(cfg, matcher)
+    # refine the map first (postprocess=), then interpolate the refined map (interpolator=)
+    return with_interpolator(cfg, apply_postprocess(cfg, matcher))
 
 
 def interpolator_config(cfg: DictConfig) -> DictConfig | None:
@@ -172,6 +173,27 @@ def with_interpolator(cfg: DictConfig, matcher):
         raise ConfigError(f"cannot build the interpolator: {err}") from None
     if not (isinstance(wrapped, Matcher) and protocol.interpolates(wrapped)):
         raise ConfigError(f"interpolator {node._target_} has no interpolate(x, y, times) method")
+    return wrapped
+
+
+def apply_postprocess(cfg: DictConfig, matcher):
+    """``matcher`` wrapped by the ``postprocess=`` group's refinement (e.g. ``postprocess=smooth_shells``), if any.
+
+    The group's config is a partial (``_partial_: true``) called with the built matcher as ``matcher``; the
+    wrapper's ``required_operators`` then include the refinement's. Only ``evaluate.py`` applies it (training
+    validation calls the model's own ``match``).
+    """
+    post_cfg = cfg.get("postprocess")
+    if post_cfg is None:
+        return matcher
+    if "_target_" not in post_cfg:
+        raise ConfigError("the postprocess config has no _target_ (use postprocess=smooth_shells or postprocess=null)")
+    try:
+        wrapped = hydra.utils.instantiate(post_cfg, _convert_="object", _partial_=True)(matcher=matcher)
+    except hydra.errors.InstantiationException as err:
+        raise ConfigError(f"cannot build the postprocess step: {err}") from None
+    if not isinstance(wrapped, Matcher):
+        raise ConfigError(f"{type(wrapped).__name__} has no match(x, y) method; it cannot post-process a matcher")
     return wrapped
 
 
@@ -439,6 +461,8 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
         "geodesics": settings.geodesics,
         "normalization": repr(shapes.normalization),
     }
+    if cfg.get("postprocess") is not None:
+        fingerprint["postprocess"] = OmegaConf.to_container(cfg.postprocess, resolve=True)
     if protocol.interpolates(matcher):
         fingerprint["interp_times"] = None if settings.interp_times is None else list(settings.interp_times)
     matching = matching_option(cfg, matcher)  # G-MSM: multi-shape matching over the split (new in issue 13)
