@@ -42,6 +42,23 @@ def compose_config() -> Callable[..., DictConfig]:
     return _compose
 
 
+def _evaluate_on_folder(root, cache_dir, out, *overrides: str, n_examples: int = 0) -> DictConfig:
+    return _compose("evaluate", [
+        "data=folder", f"data.root={root}", f"paths.cache_dir={cache_dir}", f"output_dir={out}", "progress=false",
+        f"n_examples={n_examples}",
+        "data.operators.n_eig=30",  # small eigenbases: fast cache fill
+        *overrides,
+    ])
+
+
+@pytest.fixture(scope="session")
+def evaluate_on_folder() -> Callable[..., DictConfig]:
+    """``evaluate_on_folder(root, cache_dir, out, *overrides, n_examples=0)``: the evaluate.py config of a
+    ``data=folder`` run on ``root`` (cache in ``cache_dir``, outputs in ``out``, no progress bar, 30 eigenpairs),
+    plus ``overrides``."""
+    return _evaluate_on_folder
+
+
 @pytest.fixture(scope="module")
 def single_thread():
     """torch on one thread for the module that uses it; the previous setting is restored afterwards."""

@@ -30,27 +30,15 @@ BLEND = ["model=linear_blend", "model.matcher.descriptor=hks"]
 
 
 @pytest.fixture(scope="module")
-def folder(tmp_path_factory, compose_config, bent_sphere_folder):
-    """``(root, cache_dir, compose_config)``."""
+def folder(tmp_path_factory, evaluate_on_folder, bent_sphere_folder):
+    """``(root, cache_dir, evaluate_on_folder)``."""
     root = bent_sphere_folder(tmp_path_factory.mktemp("interp_folder"), NAMES)
-    return root, tmp_path_factory.mktemp("interp_cache"), compose_config
+    return root, tmp_path_factory.mktemp("interp_cache"), evaluate_on_folder
 
 
 def _cfg(folder, out: Path, *overrides: str):
-    root, cache, compose_config = folder
-    return compose_config(
-        "evaluate",
-        overrides=[
-            "data=folder",
-            f"data.root={root}",
-            f"paths.cache_dir={cache}",
-            f"output_dir={out}",
-            "progress=false",
-            "n_examples=0",
-            "data.operators.n_eig=30",
-            *overrides,
-        ],
-    )
+    root, cache, config = folder
+    return config(root, cache, out, *overrides)
 
 
 def _rows(path: Path) -> list[dict]:

@@ -31,8 +31,8 @@ N_PAIRS = len(NAMES) * (len(NAMES) - 1)
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory, compose_config):
-    """``(root, cache_dir, compose_config)`` of the tiny folder; the cache is shared by the tests of this module."""
+def tiny(tmp_path_factory, evaluate_on_folder):
+    """``(root, cache_dir, evaluate_on_folder)`` of the tiny folder; the cache is shared by the tests of this module."""
     root = tmp_path_factory.mktemp("tiny_faust")
     for sub in ("off", "corres", "splits"):
         (root / sub).mkdir()
@@ -53,24 +53,12 @@ def tiny(tmp_path_factory, compose_config):
         write_vts(root / "corres" / f"{name}.sym.vts", perm[mirror[ref]])
     (root / "splits" / "test.txt").write_text("\n".join(NAMES) + "\n")
     (root / "splits" / "train.txt").write_text("\n".join(NAMES[:2]) + "\n")
-    return root, tmp_path_factory.mktemp("cache"), compose_config
+    return root, tmp_path_factory.mktemp("cache"), evaluate_on_folder
 
 
 def _cfg(tiny, out: Path, *overrides: str):
-    root, cache, compose_config = tiny
-    return compose_config(
-        "evaluate",
-        overrides=[
-            "data=folder",
-            f"data.root={root}",
-            f"paths.cache_dir={cache}",
-            f"output_dir={out}",
-            "progress=false",
-            "n_examples=2",
-            "data.operators.n_eig=30",  # small eigenbases: fast cache fill
-            *overrides,
-        ],
-    )
+    root, cache, config = tiny
+    return config(root, cache, out, *overrides, n_examples=2)
 
 
 def _read_csv(path: Path) -> list[dict]:
