@@ -102,7 +102,10 @@ def resolve_device(name: str) -> torch.device:
 
 
 def build_matcher(cfg: DictConfig, device: torch.device):
-    """The matcher selected by ``model=`` (+ ``ckpt_path``) or ``maps_dir=`` (see the module docstring)."""
+    """The matcher selected by ``model=`` (+ ``ckpt_path``) or ``maps_dir=`` (see the module docstring).
+
+    Wrapped by the ``postprocess=`` refinement, then by the ``interpolator=`` (both optional).
+    """
     model_cfg = cfg.get("model")
     if cfg.get("maps_dir"):
         if model_cfg is not None:
