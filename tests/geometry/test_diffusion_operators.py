@@ -131,3 +131,22 @@ def test_frames_where_the_normal_is_the_reference_axis():
     c = np.array([0.0, 1.5, -0.5])
     got = np.stack([ops["grad_x"] @ (v @ c), ops["grad_y"] @ (v @ c)], axis=1)
     assert np.abs(got - np.stack([fr[:, 0] @ c, fr[:, 1] @ c], axis=1)).max() < 1e-4
+
+
+def test_folded_one_ring_takes_the_neighbours_normal():
+    # A flap as remeshing leaves it (4 FAUST_r shapes): vertex w lies in two faces with opposite orientation over
+    # the same triangle, so its area-weighted normal sums to exactly zero; its frame comes from its neighbours.
+    v, f, rot = _planar_patch(seed=3, n=60)
+    a, b = f[0, 0], f[0, 1]
+    w = len(v)
+    v_flap = np.vstack([v, (v[a] + v[b]) / 2 + 0.05 * rot[:, 0]])
+    f_flap = np.vstack([f, [[a, w, b], [b, w, a]]])
+    fr = tangent_frames(v_flap, f_flap).astype(np.float64)
+    assert np.isfinite(fr).all()
+    assert np.abs(np.einsum("nij,nkj->nik", fr, fr) - np.eye(3)).max() < 1e-5
+    patch_normal = rot[:, 2]
+    assert abs(fr[w, 2] @ patch_normal) > 0.99
+    # the other vertices keep their libigl normals
+    np.testing.assert_allclose(fr[:w], tangent_frames(v, f), atol=1e-6)
+    gx, gy = spatial_gradient(v_flap, f_flap, frames=fr.astype(np.float32))
+    assert np.isfinite(gx.data).all() and np.isfinite(gy.data).all()
