@@ -47,7 +47,7 @@ from shapecorr.data.operators import (
 )
 from shapecorr.data.shape import Normalization, Shape
 from shapecorr.data.validation import CLI_PREFIX, ValidationOptions
-from shapecorr.errors import ConfigError, DatasetError, InvalidMeshError
+from shapecorr.errors import ConfigError, DatasetError, InvalidMeshError, ShapeCorrError
 
 MESH_DIRS = ("off", "shapes")
 MESH_EXTENSIONS = (".off", ".ply", ".obj")
@@ -379,12 +379,12 @@ def operators_with_fallback(cache: ShapeCache, shape: Shape, operators: Operator
     from shapecorr.data.validation import MeshWarning
 
     verts, faces = shape.verts.numpy(), shape.faces.numpy()
+    where = shape.path or shape.name
     try:
-        return compute_operators(cache, verts, faces, operators)
+        return _compute_naming_the_file(cache, verts, faces, operators, where)
     except InvalidMeshError as err:
         if operators.laplacian != "cotan" or "infinite weights" not in str(err):
             raise
-        where = shape.path or shape.name
         if not fallback:
             raise InvalidMeshError(
                 f"{err.problem}; set {CLI_PREFIX}laplacian_fallback=true (robust Laplacian for such shapes) or "
@@ -394,7 +394,17 @@ def operators_with_fallback(cache: ShapeCache, shape: Shape, operators: Operator
         warnings.warn(f"{where}: cotangent Laplacian has infinite weights (zero-area faces); using the robust "
                       f"Laplacian for this shape ({CLI_PREFIX}laplacian_fallback=false refuses such shapes)",
                       MeshWarning, stacklevel=2)
-        return compute_operators(cache, verts, faces, operators.with_request(laplacian="robust"))
+        return _compute_naming_the_file(cache, verts, faces, operators.with_request(laplacian="robust"), where)
+
+
+def _compute_naming_the_file(cache: ShapeCache, verts, faces, operators: OperatorConfig, where) -> dict:
+    """:func:`compute_operators`; an error about the mesh that names no file gets ``where`` (the shape's file)."""
+    try:
+        return compute_operators(cache, verts, faces, operators)
+    except ShapeCorrError as err:
+        if err.path is not None:
+            raise
+        raise type(err)(err.problem, where) from None
 
 
 #: What ``ShapeDataset.prepare(geodesics=...)`` caches: rows from the ground-truth points (what the

@@ -235,3 +235,23 @@ def test_ctrl_c_prints_one_line_with_the_resume_command(tmp_path, capsys, monkey
     monkeypatch.setattr(protocol, "evaluate_pairs", real)
     evaluate_cli.evaluate(cfg)
     assert "resuming: 2 of 6 pairs done" in capsys.readouterr().err
+
+
+def test_operator_errors_name_the_file(tmp_path):
+    # An operator that fails on the mesh (here: DiffusionNet's frames at a vertex in no face, accepted by
+    # data.validation.allow_unreferenced) must name the shape's file, not only the vertex.
+    from shapecorr.data.cache import ShapeCache
+    from shapecorr.data.datasets import operators_with_fallback
+    from shapecorr.data.operators import OperatorConfig
+    from shapecorr.data.shape import Shape
+    from shapecorr.errors import NumericalError
+
+    import torch
+
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    verts = np.vstack([mesh.vertices, [[3.0, 0.0, 0.0]]]).astype(np.float32)
+    shape = Shape(verts=torch.from_numpy(verts), faces=torch.from_numpy(np.asarray(mesh.faces, np.int64)),
+                  name="loose", path=tmp_path / "loose.off")
+    config = OperatorConfig(request={"diffusion_gradients": {}})
+    with pytest.raises(NumericalError, match="loose.off: no vertex normal"):
+        operators_with_fallback(ShapeCache(tmp_path / "cache"), shape, config, True)
