@@ -13,7 +13,7 @@
    multi-shape matching (the full graph over the 20 test shapes, composed maps, cycle consistency), into
    ``RUN_DIR/eval_graph``;
 3. the same with ``matching=pairwise`` (the direct maps of the same network), into ``RUN_DIR/eval_pairwise``;
-4. ``matching=pairwise`` on the checkpoint of the last epoch before the first graph build (pairwise
+4. ``matching=pairwise`` on the checkpoint of the epoch at whose end the graph is first built (pairwise
    DiffusionNet + Deep Shells training only, the same run up to that point), into ``RUN_DIR/eval_burn_in``.
 
 The ``pairwise`` baseline of the issue (``model.graph.enabled=false``, the same schedule) is the run up to the
@@ -116,7 +116,7 @@ def main(argv=None) -> int:
         bench_common.run_command(train_command(run_dir, data, args.max_time, args.burn_in_epoch), args.threads, REPO)
     last = run_dir / "checkpoints" / "last.ckpt"
     evals = {"eval_graph": (lambda: last, "graph"), "eval_pairwise": (lambda: last, "pairwise"),
-             "eval_burn_in": (lambda: checkpoint_of_epoch(run_dir, args.burn_in_epoch - 1), "pairwise")}
+             "eval_burn_in": (lambda: checkpoint_of_epoch(run_dir, args.burn_in_epoch), "pairwise")}
     for name, (ckpt, matching) in evals.items():
         if name not in args.skip and not (run_dir / name / "metrics.json").is_file():
             bench_common.run_command(eval_command(run_dir, data, name, ckpt(), matching), args.threads, REPO)
