@@ -43,8 +43,8 @@ EXTRA_KEYS = ("cycle_consistency", "peak_memory_mb", "n_unreachable", "graph_var
 
 
 def checkpoint_of_epoch(run_dir: Path, epoch: int) -> Path:
-    """The periodic checkpoint saved at the end of ``epoch`` (0-based), ``checkpoints/epoch=E-step=S.ckpt``."""
-    found = sorted((run_dir / "checkpoints").glob(f"epoch={epoch}-*.ckpt"))
+    """The periodic checkpoint saved at the end of ``epoch`` (0-based), ``checkpoints/epochEEE-stepSSSSSS.ckpt``."""
+    found = sorted((run_dir / "checkpoints").glob(f"epoch{epoch:03d}-*.ckpt"))
     if not found:
         raise SystemExit(f"{run_dir / 'checkpoints'}: no checkpoint of epoch {epoch}")
     return found[-1]
