@@ -97,6 +97,9 @@ def checkpoint_callback(cfg: DictConfig, out_dir: Path) -> ModelCheckpoint:
             save_top_k=-1,  # keep every periodic checkpoint
             every_n_epochs=every_n_epochs,
             every_n_train_steps=every_n_steps,
+            # epoch checkpoints at the end of every training epoch: Lightning's default with a validation loop is
+            # to save after validation, so epochs without one (check_val_every_n_epoch > 1) would get none
+            save_on_train_epoch_end=True if every_n_epochs else None,
         )
     except (MisconfigurationException, ValueError, TypeError) as err:
         raise ConfigError(f"invalid checkpoint options (checkpoint.every_n_train_steps={every_n_steps}, "
