@@ -39,6 +39,7 @@ import argparse
 import datetime
 import json
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -82,6 +83,7 @@ def evaluate_method(data_overrides: list[str], model_overrides: list[str], out: 
     from shapecorr.data.operators import required_request
     from shapecorr.eval import protocol, reports
 
+    shutil.rmtree(out, ignore_errors=True)  # fresh: evaluate_pairs would skip the pairs of an earlier run
     cfg = _compose([*data_overrides, *model_overrides, f"output_dir={out}", "progress=false"])
     matcher = build_matcher(cfg, torch.device("cpu"))
     if weights is not None:
