@@ -29,9 +29,11 @@ as ``OUT/interp/<x>__<y>/t_XX.ply`` (XX = index into ``interp_times``, in x's in
 fractions of sqrt(area(y))) and average the conformal distortion along the sequence over the frames with
 0 <= t <= 1; when 1 is not among ``interp_times`` it is evaluated as well for the metrics but not written.
 ``metrics.json`` then holds ``mean_deformation_conformal_distortion``, ``mean_chamfer``,
-``mean_chamfer_one_sided`` and ``mean_volume_change`` (absent for other matchers; ``mean_conformal_distortion``
-is the distortion of the map, for every matcher), ``per_pair.csv`` the per-pair values, and the printed
-summary the first two.
+``mean_chamfer_one_sided``, ``mean_volume_change``, ``mean_volume_score`` and ``interp_curves`` (per frame
+time: mean conformal distortion and volume score ``V_t/V_0 + V_0/V_t - 2`` over pairs, drawn as
+``OUT/interp_curves.png``); these are absent for other matchers (``mean_conformal_distortion`` is the
+distortion of the map, for every matcher). ``per_pair.csv`` holds the per-pair values, ``pairs/<x>__<y>.json``
+also the per-pair curves, and the printed summary the first two.
 
 ``task=pose_transfer`` (:mod:`shapecorr.cli.pose_transfer`) runs an interpolating matcher on two mesh files,
 ``source=A`` and ``target=B`` (.off/.ply/.obj, normalized like the data config's shapes, operators cached),
@@ -77,6 +79,7 @@ from shapecorr.eval import multi_shape, protocol, reports
 from shapecorr.eval.export import INTERP_DIR, map_paths
 from shapecorr.matching.baselines import LinearBlend, PrecomputedMaps
 from shapecorr.matching.result import Matcher
+from shapecorr.viz.interp_curves import INTERP_CURVES_PNG, write_interp_curves_png
 from shapecorr.viz.pck import write_pck_png
 from shapecorr.viz.render import render_correspondence
 
@@ -523,6 +526,8 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     reports.write_metrics_json(out_dir / "metrics.json", result)
     reports.write_per_pair_csv(out_dir / "per_pair.csv", records)
     write_pck_png(out_dir / "pck.png", result, label=fingerprint["matcher"].rsplit(".", 1)[-1])
+    if reports.CURVES_KEY in result:
+        write_interp_curves_png(out_dir / INTERP_CURVES_PNG, result, label=fingerprint["matcher"].rsplit(".", 1)[-1])
     render_examples(out_dir, shapes, pairs, records, int(cfg.n_examples), view)
     summary = reports.summary(result, out_dir)
     print(summary)

@@ -58,7 +58,7 @@ from tqdm.auto import tqdm
 from shapecorr.data.cache import atomic_open
 from shapecorr.data.datasets import pair_name
 from shapecorr.data.ground_truth import ground_truth_indices
-from shapecorr.errors import ConfigError, CorrespondenceError, InvalidMeshError
+from shapecorr.errors import ConfigError, CorrespondenceError, InvalidMeshError, NumericalError
 from shapecorr.eval import metrics
 from shapecorr.eval.export import write_map_files, write_sequence
 from shapecorr.matching.result import MatchResult
@@ -105,6 +105,12 @@ class PairRecord:
         distortion of the frames with 0 <= t <= 1 averaged over those frames. None otherwise.
     n_excluded : int
         Reference points excluded because they lie on a small island of the source or target mesh.
+    volume_score : float or None
+        ``V_1/V_0 + V_0/V_1 - 2`` of the frame at t = 1 (closed meshes only; interpolating matchers).
+    curve_times, curve_conformal_distortion, curve_volume_score : list or None
+        Interpolating matchers: the time of every computed frame (extrapolated ones and an added t = 1
+        included) and that frame's conformal distortion and volume score (None entries: open mesh or
+        inverted frame). Kept in ``pairs/<x>__<y>.json``; not columns of ``per_pair.csv``.
     """
 
     source: str
@@ -121,6 +127,10 @@ class PairRecord:
     volume_change: float | None = None
     deformation_conformal_distortion: float | None = None
     n_excluded: int = 0
+    volume_score: float | None = None
+    curve_times: list[float] | None = None
+    curve_conformal_distortion: list[float] | None = None
+    curve_volume_score: list[float | None] | None = None
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "PairRecord":
@@ -327,8 +337,11 @@ def score_deformation(
     Returns
     -------
     dict with ``chamfer`` and ``chamfer_one_sided`` (frame at t = 1 vs y, fractions of sqrt(area(y))),
-    ``volume_change`` (relative, that frame vs x; None when x is not a closed mesh) and
-    ``deformation_conformal_distortion`` (mean over the scored frames).
+    ``volume_change`` (relative, that frame vs x; None when x is not a closed mesh), ``volume_score``
+    (``V_1/V_0 + V_0/V_1 - 2`` of that frame; None likewise), ``deformation_conformal_distortion`` (mean over
+    the scored frames) and the curves over every frame, extrapolated ones included: ``curve_times (T,)``,
+    ``curve_conformal_distortion (T,)`` and ``curve_volume_score (T,)`` (lists of float; a volume entry is None
+    for an open x or an inverted frame). Without ``times`` the frames are taken evenly spaced over [0, 1].
 
     Raises
     ------
@@ -357,14 +370,27 @@ def score_deformation(
         volume = metrics.relative_volume_change(verts_x, faces_x, last)
     except InvalidMeshError:
         volume = None  # open or non-manifold source: the enclosed volume is undefined
+    distortion_t = [metrics.mean_conformal_distortion(verts_x, faces_x, f, clamp) for f in frames]
+    volume_t = [None if volume is None else _volume_score_or_none(verts_x, faces_x, f) for f in frames]
+    frame_times = np.linspace(0.0, UNIT_TIME, frames.shape[0]) if times is None else times
     return {
         "chamfer": metrics.chamfer_distance(last, verts_y) / sqrt_area_y,
         "chamfer_one_sided": metrics.chamfer_distance(last, verts_y, one_sided=True) / sqrt_area_y,
         "volume_change": volume,
-        "deformation_conformal_distortion": float(
-            np.mean([metrics.mean_conformal_distortion(verts_x, faces_x, f, clamp) for f in frames[scored]])
-        ),
+        "volume_score": volume_t[unit],
+        "deformation_conformal_distortion": float(np.mean(np.asarray(distortion_t)[scored])),
+        "curve_times": [float(t) for t in frame_times],
+        "curve_conformal_distortion": [float(d) for d in distortion_t],
+        "curve_volume_score": volume_t,
     }
+
+
+def _volume_score_or_none(verts_x: np.ndarray, faces_x: np.ndarray, frame: np.ndarray) -> float | None:
+    """``V_t/V_0 + V_0/V_t - 2`` of one frame of a closed x; None when the frame is inverted (V_t <= 0)."""
+    try:
+        return metrics.volume_change_score(verts_x, faces_x, frame)
+    except NumericalError:
+        return None
 
 
 # --------------------------------------------------------------------------------------------------------

@@ -20,8 +20,10 @@ Aggregation conventions (documented in ``metrics.json`` itself under ``"conventi
   one (``n_pairs_interpolated``): ``mean_deformation_conformal_distortion`` (the conformal distortion along
   the sequence: per pair the mean over the frames with 0 <= t <= 1, then the mean over pairs; same clamp),
   ``mean_chamfer`` / ``mean_chamfer_one_sided`` (the frame at t = 1 against the target, fractions of
-  sqrt(area of the target)) and ``mean_volume_change`` (closed meshes only). These keys are absent for
-  matchers without a deformation.
+  sqrt(area of the target)), ``mean_volume_change`` and ``mean_volume_score`` (closed meshes only), and
+  ``interp_curves``: per frame time, the means over pairs of the conformal distortion and of the volume score
+  ``V_t/V_0 + V_0/V_t - 2`` (drawn as ``interp_curves.png`` by :mod:`shapecorr.viz.interp_curves`). These
+  keys are absent for matchers without a deformation.
 """
 
 from __future__ import annotations
@@ -41,14 +43,20 @@ import numpy as np
 from shapecorr.data.cache import atomic_open
 from shapecorr.errors import CorrespondenceError
 from shapecorr.eval import metrics
-from shapecorr.eval.protocol import PairRecord
+from shapecorr.eval.protocol import TIME_ATOL, PairRecord
 
-#: Column order of per_pair.csv: the four columns of the issue first, then everything else a record holds.
+#: Per-pair curves over the frames (lists), kept in the per-pair JSON records, not in per_pair.csv.
+CURVE_ATTRIBUTES = ("curve_times", "curve_conformal_distortion", "curve_volume_score")
+#: Column order of per_pair.csv: the four columns of the issue first, then every scalar a record holds.
 PER_PAIR_COLUMNS = ["source", "target", "mean_error", "seconds"] + [
-    f.name for f in fields(PairRecord) if f.name not in ("source", "target", "mean_error", "seconds")
+    f.name for f in fields(PairRecord)
+    if f.name not in ("source", "target", "mean_error", "seconds") and f.name not in CURVE_ATTRIBUTES
 ]
 #: Per-pair deformation metrics averaged into ``mean_<name>`` when present (interpolating matchers).
-DEFORMATION_ATTRIBUTES = ("chamfer", "chamfer_one_sided", "volume_change", "deformation_conformal_distortion")
+DEFORMATION_ATTRIBUTES = ("chamfer", "chamfer_one_sided", "volume_change", "volume_score",
+                          "deformation_conformal_distortion")
+#: Key of ``metrics.json`` holding the per-time means of the interpolation curves.
+CURVES_KEY = "interp_curves"
 _KIB_PER_MIB = 1024.0
 
 
@@ -76,6 +84,45 @@ def peak_memory_mb(include_cuda: bool = True) -> dict[str, float]:
 def _mean_of(records: Sequence[PairRecord], attr: str) -> float | None:
     values = [getattr(r, attr) for r in records if getattr(r, attr) is not None]
     return float(np.mean(values)) if values else None
+
+
+def interpolation_curves(records: Sequence[PairRecord]) -> dict[str, list] | None:
+    """Per-time means over pairs of the interpolation curves (``metrics.json["interp_curves"]``).
+
+    Parameters
+    ----------
+    records : list of PairRecord
+        Those without curves (non-interpolating matchers) are skipped.
+
+    Returns
+    -------
+    dict with ``times (T,)`` (every frame time of any pair, sorted; times closer than
+    :data:`~shapecorr.eval.protocol.TIME_ATOL` merged), ``conformal_distortion (T,)`` and ``volume_score (T,)``
+    (means over the pairs having a value at that time; None where no pair has one) and ``n_pairs (T,)``, or
+    None when no record has curves.
+    """
+    with_curves = [r for r in records if r.curve_times]
+    if not with_curves:
+        return None
+    times: list[float] = []
+    for t in sorted(t for r in with_curves for t in r.curve_times):
+        if not times or t - times[-1] > TIME_ATOL:
+            times.append(float(t))
+    grid = np.asarray(times)
+    sums = {"conformal_distortion": [[] for _ in times], "volume_score": [[] for _ in times]}
+    n_pairs = [0] * len(times)
+    for r in with_curves:
+        index = np.abs(np.asarray(r.curve_times)[:, None] - grid[None, :]).argmin(axis=1)
+        volumes = r.curve_volume_score or [None] * len(r.curve_times)
+        for k, d, v in zip(index.tolist(), r.curve_conformal_distortion, volumes):
+            n_pairs[k] += 1
+            sums["conformal_distortion"][k].append(d)
+            if v is not None:
+                sums["volume_score"][k].append(v)
+    out: dict[str, list] = {"times": times, "n_pairs": n_pairs}
+    for key, values in sums.items():
+        out[key] = [float(np.mean(v)) if v else None for v in values]
+    return out
 
 
 def aggregate(
@@ -133,6 +180,9 @@ def aggregate(
     interpolated = sum(r.deformation_conformal_distortion is not None for r in records)
     if interpolated:
         out["n_pairs_interpolated"] = interpolated
+    curves = interpolation_curves(records)
+    if curves is not None:
+        out[CURVES_KEY] = curves
     out["pck"] = {"thresholds": t.tolist(), "fractions": frac.tolist()}
     out["conventions"] = {
         "errors": "geodesic distance on the target / sqrt(area of the target); x100 for paper numbers",
@@ -150,6 +200,10 @@ def aggregate(
                 "mean_chamfer": "two-sided Chamfer distance between the frame at t = 1 and the target "
                 "(mean nearest-vertex distance both ways, summed) / sqrt(area of the target), mean over pairs",
                 "mean_chamfer_one_sided": "the frame-at-t=1 -> target half of mean_chamfer",
+                "mean_volume_change": "V_1/V_0 - 1 of the frame at t = 1 (signed; closed meshes), mean over pairs",
+                "mean_volume_score": "V_1/V_0 + V_0/V_1 - 2 of the frame at t = 1 (closed meshes), mean over pairs",
+                CURVES_KEY: "per frame time (extrapolated frames included): conformal distortion of the frame vs x "
+                "and V_t/V_0 + V_0/V_t - 2, means over the pairs with that time (n_pairs); drawn in interp_curves.png",
             }
         )
     return out
@@ -170,6 +224,8 @@ def summary(metrics_dict: Mapping[str, Any], out_dir: str | os.PathLike | None =
             f"; interpolation: conformal distortion {m['mean_deformation_conformal_distortion']:.4f}, "
             f"Chamfer X(1)-Y {m['mean_chamfer']:.4f} (one-sided {m['mean_chamfer_one_sided']:.4f})"
         )
+        if "mean_volume_score" in m:
+            text += f", volume score at t = 1 {m['mean_volume_score']:.4f}"
     if out_dir is not None:
         text += f" -> {out_dir}"
     return text

@@ -74,3 +74,22 @@ def test_metrics_json_and_pck_png(tmp_path):
 def test_peak_memory_is_positive():
     mem = reports.peak_memory_mb()
     assert mem["peak_memory_mb"] >= mem["peak_memory_self_mb"] > 10  # a Python process with numpy/torch
+
+
+def test_interpolation_curves_mean_per_time_skipping_missing_values(tmp_path):
+    from shapecorr.viz.interp_curves import write_interp_curves_png
+
+    a = _record("a", "b", 0.1)
+    a.curve_times, a.curve_conformal_distortion = [0.0, 0.5, 1.0], [0.0, 1.0, 2.0]
+    a.curve_volume_score = [0.0, 0.2, 0.4]
+    b = _record("b", "a", 0.2)
+    # a second pair with an extra frame at 1.5, a time carried in float32 and an inverted frame (no volume score)
+    b.curve_times = [0.0, float(np.float32(0.5)), 1.0, 1.5]
+    b.curve_conformal_distortion, b.curve_volume_score = [0.0, 3.0, 4.0, 5.0], [0.0, None, 0.6, 0.8]
+    curves = reports.interpolation_curves([a, b, _record("c", "a", 0.3)])
+    assert curves["times"] == [0.0, 0.5, 1.0, 1.5] and curves["n_pairs"] == [2, 2, 2, 1]
+    assert curves["conformal_distortion"] == pytest.approx([0.0, 2.0, 3.0, 5.0])
+    assert curves["volume_score"] == pytest.approx([0.0, 0.2, 0.5, 0.8])
+    assert reports.interpolation_curves([_record("c", "a", 0.3)]) is None
+    path = write_interp_curves_png(tmp_path / "interp_curves.png", {"interp_curves": curves, "n_pairs": 3})
+    assert Image.open(path).size[0] > 100
