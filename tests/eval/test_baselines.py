@@ -135,3 +135,21 @@ def test_precomputed_maps(spheres, tmp_path):
         PrecomputedMaps(tmp_path).match(y, x)  # missing file
     with pytest.raises(CorrespondenceError, match="does not exist"):
         PrecomputedMaps(tmp_path / "nope")
+
+
+@pytest.mark.parametrize("dim", [4, 40])
+def test_descriptor_nn_backends_agree_at_input_resolution(spheres, dim):
+    """auto (kd-tree for low d, chunks otherwise), kd-tree and small chunks give the dense argmin, at full size."""
+    x, y = spheres[0], spheres[2]
+    g = torch.Generator().manual_seed(1)
+    fx = torch.randn(x.shape.n_verts, dim, generator=g)
+    fy = torch.randn(y.shape.n_verts, dim, generator=g)
+    x = replace(x, features={**x.features, "hks": fx})
+    y = replace(y, features={**y.features, "hks": fy})
+    dense = torch.cdist(fx.double(), fy.double())
+    for backend, chunk in (("auto", 1024), ("kdtree", 1024), ("brute", 7)):
+        result = DescriptorNN("hks", backend=backend, chunk_rows=chunk).match(x, y)
+        assert result.p2p.shape == (x.shape.n_verts,) and result.p2p_inv.shape == (y.shape.n_verts,)
+        assert torch.equal(result.p2p, dense.argmin(1)) and torch.equal(result.p2p_inv, dense.argmin(0))
+    with pytest.raises(ConfigError, match="backend"):
+        DescriptorNN(backend="faiss")

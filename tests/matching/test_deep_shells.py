@@ -437,6 +437,9 @@ def test_query_subsamples_large_shapes_for_the_ot_level(pair):
     cfg = DeepShellsConfig(max_query_points=200, **SMALL_REFINE)
     match = deep_shells_query(pair["feat_x"], pair["feat_y"], pair["x"], pair["y"], cfg)
     assert _map_error(pair, match.map_x_to_y) < 0.5
+    # OT on 200 samples, maps at the input resolution
+    assert match.map_x_to_y.shape == (pair["x"].n_verts,) and match.map_y_to_x.shape == (pair["y"].n_verts,)
+    assert pair["x"].n_verts > 200
 
 
 def test_bad_inputs_raise(pair):
