@@ -36,7 +36,6 @@ NOT those of the published setting.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
 import shutil
@@ -154,23 +153,15 @@ def curves_png(path: Path, datasets: dict[str, dict[str, dict]]) -> Path:
     """Conformal distortion and volume score vs t: one row per dataset, one line per method."""
     from matplotlib.figure import Figure
 
-    from shapecorr.viz.interp_curves import PANELS
+    from shapecorr.viz.interp_curves import PANELS, draw_interp_curves
     from shapecorr.viz.render import save_figure
 
     fig = Figure(figsize=(9.0, 3.2 * len(datasets)), dpi=90)
     for r, (dataset, methods) in enumerate(datasets.items()):
-        for c, (key, label) in enumerate(PANELS.items()):
-            ax = fig.add_subplot(len(datasets), len(PANELS), r * len(PANELS) + c + 1)
-            for method, curves in methods.items():
-                pts = [(t, v) for t, v in zip(curves["times"], curves[key]) if v is not None]
-                ax.plot(*np.asarray(pts).T, marker="o", markersize=3, label=method)
-            ax.axvspan(1.0, max(methods[next(iter(methods))]["times"]), color="0.92", zorder=0)
-            ax.set_title(f"{dataset}", fontsize="small")
-            ax.set_xlabel("t")
-            ax.set_ylabel(label, fontsize="x-small")
-            ax.grid(True, alpha=0.3)
-            if c == 0:
-                ax.legend(fontsize="x-small", loc="upper left")
+        axes = [fig.add_subplot(len(datasets), len(PANELS), r * len(PANELS) + c + 1) for c in range(len(PANELS))]
+        draw_interp_curves(axes, methods)
+        for ax in axes:
+            ax.set_title(dataset, fontsize="small")
     fig.tight_layout()
     return save_figure(fig, path)
 
@@ -237,11 +228,8 @@ def main(argv: list[str] | None = None) -> dict:
         renders[dataset] = str(render_first_pair(render_dir / f"hamiltonian_interpolation_{dataset}.png", outs,
                                                  first, times, target))
     png = curves_png(Path(args.curves_png), curves)
-    result = {
+    summary = {
         "benchmark": "hamiltonian_interpolation",
-        "command": " ".join([Path(sys.executable).name, *sys.argv]),
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": bench_common.machine_info(),
         "settings": {
             "hamiltonian": {"n_modes": args.n_modes, "fields": 3 * args.n_modes ** 3, "samples": args.samples,
                             "iterations": args.iterations, "n_steps": args.n_steps,
@@ -272,9 +260,9 @@ def main(argv: list[str] | None = None) -> dict:
         "curves_png": str(png),
         "renders": renders,
     }
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
+    result = bench_common.summary_report("hamiltonian_interpolation.py", sys.argv[1:] if argv is None else list(argv),
+                                         summary)
+    bench_common.write_report(args.output, result)
     return result
 
 

@@ -525,9 +525,10 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     }
     reports.write_metrics_json(out_dir / "metrics.json", result)
     reports.write_per_pair_csv(out_dir / "per_pair.csv", records)
-    write_pck_png(out_dir / "pck.png", result, label=fingerprint["matcher"].rsplit(".", 1)[-1])
+    label = fingerprint["matcher"].rsplit(".", 1)[-1]
+    write_pck_png(out_dir / "pck.png", result, label=label)
     if reports.CURVES_KEY in result:
-        write_interp_curves_png(out_dir / INTERP_CURVES_PNG, result, label=fingerprint["matcher"].rsplit(".", 1)[-1])
+        write_interp_curves_png(out_dir / INTERP_CURVES_PNG, result, label=label)
     render_examples(out_dir, shapes, pairs, records, int(cfg.n_examples), view)
     summary = reports.summary(result, out_dir)
     print(summary)

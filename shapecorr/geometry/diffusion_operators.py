@@ -83,11 +83,11 @@ def _vertex_normals64(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     face_area_sum = np.zeros(len(v))
     np.add.at(face_area_sum, f.ravel(), np.repeat(np.linalg.norm(cross, axis=1), 3))
+    # libigl returns the normalized sum only; its length, needed to detect cancellation, is recomputed here
     raw = np.zeros_like(v)
     np.add.at(raw, f.ravel(), np.repeat(cross, 3, axis=0))
     length = np.linalg.norm(raw, axis=1)
     bad = ~(np.isfinite(length) & (length > NORMAL_MIN_LENGTH) & (length > NORMAL_CANCEL_RTOL * face_area_sum))
-    normals[~bad] = raw[~bad] / length[~bad, None]
     if bad.any():
         edges = np.asarray(directed_edges(f, len(v)))
         adjacency = sp.csr_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(len(v), len(v)))

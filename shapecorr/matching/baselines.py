@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 
 from shapecorr.data.ground_truth import ground_truth_indices
 from shapecorr.errors import ConfigError, CorrespondenceError, NumericalError
-from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
+from shapecorr.matching.nearest_neighbors import NN_BACKENDS, bidirectional_nearest_neighbors
 from shapecorr.matching.result import MatchResult
 
 #: Descriptors DescriptorNN can use (computed by the data pipeline, shapecorr.data.operators).
@@ -109,8 +109,8 @@ class DescriptorNN:
             raise ConfigError(f"normalize must be one of {DESCRIPTOR_NORMALIZATIONS}, got {normalize!r}")
         if chunk_rows < 1:
             raise ConfigError(f"chunk_rows must be positive, got {chunk_rows}")
-        if backend not in ("auto", "kdtree", "brute"):
-            raise ConfigError(f"descriptor_nn: backend must be auto, kdtree or brute, got {backend!r}")
+        if backend not in NN_BACKENDS:
+            raise ConfigError(f"descriptor_nn: backend must be one of {NN_BACKENDS}, got {backend!r}")
         self.backend = backend
         self.descriptor = descriptor
         self.normalize = normalize

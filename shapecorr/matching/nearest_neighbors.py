@@ -34,7 +34,8 @@ DEFAULT_BLOCK_SIZE = 2048
 #: Threads used by the kd-tree queries (-1: all cores).
 DEFAULT_WORKERS = -1
 
-_BACKENDS = ("auto", "kdtree", "brute")
+#: Search backends of :func:`bidirectional_nearest_neighbors` (module docstring).
+NN_BACKENDS = ("auto", "kdtree", "brute")
 
 
 def _check(emb_x: torch.Tensor, emb_y: torch.Tensor) -> None:
@@ -127,8 +128,8 @@ def bidirectional_nearest_neighbors(
     nn_x_of_y : (m,) int64
         For each point of Y, the index of its nearest point of X.
     """
-    if backend not in _BACKENDS:
-        raise ConfigError(f"nearest-neighbour backend must be one of {_BACKENDS}, got {backend!r}")
+    if backend not in NN_BACKENDS:
+        raise ConfigError(f"nearest-neighbour backend must be one of {NN_BACKENDS}, got {backend!r}")
     _check(emb_x, emb_y)
     if backend == "auto":
         backend = "brute" if emb_x.device.type == "cuda" else "kdtree"

@@ -39,6 +39,35 @@ def _as_line(times, values) -> tuple[np.ndarray, np.ndarray]:
     return t, v
 
 
+def draw_interp_curves(axes, curves: Mapping[str, Mapping[str, Any]], legend: bool = True) -> None:
+    """Draw the panels of :data:`PANELS` into ``axes`` (one per panel, in order), one line per entry of ``curves``.
+
+    Parameters
+    ----------
+    axes : sequence of matplotlib Axes
+        ``len(PANELS)`` axes (one row of a figure).
+    curves : dict label -> {"times": (T,), "conformal_distortion": (T,), "volume_score": (T,)}
+        Lists or arrays; None entries are left out of the line.
+    legend : bool
+        Legend in the first panel.
+    """
+    if not curves:
+        raise ConfigError("no interpolation curves to draw")
+    t_max = max(max(c["times"]) for c in curves.values())
+    for k, (ax, (key, ylabel)) in enumerate(zip(axes, PANELS.items())):
+        for label, c in curves.items():
+            t, v = _as_line(c["times"], c.get(key) or [])
+            if t.size:
+                ax.plot(t, v, marker="o", markersize=3, label=label)
+        if t_max > 1.0:
+            ax.axvspan(1.0, t_max, color="0.92", zorder=0, label="_extrapolation")
+        ax.set_xlabel("t")
+        ax.set_ylabel(ylabel, fontsize="small")
+        ax.grid(True, alpha=0.3)
+        if legend and k == 0:
+            ax.legend(loc="upper left", fontsize="x-small")
+
+
 def interp_curves_figure(curves: Mapping[str, Mapping[str, Any]], title: str | None = None) -> Figure:
     """Conformal distortion and volume score against t, one line per entry of ``curves``.
 
@@ -55,20 +84,7 @@ def interp_curves_figure(curves: Mapping[str, Mapping[str, Any]], title: str | N
     if not curves:
         raise ConfigError("no interpolation curves to draw")
     fig = Figure(figsize=CURVES_FIGSIZE, dpi=CURVES_DPI)
-    t_max = max(max(c["times"]) for c in curves.values())
-    for k, (key, ylabel) in enumerate(PANELS.items()):
-        ax = fig.add_subplot(1, len(PANELS), k + 1)
-        for label, c in curves.items():
-            t, v = _as_line(c["times"], c.get(key) or [])
-            if t.size:
-                ax.plot(t, v, marker="o", markersize=3, label=label)
-        if t_max > 1.0:
-            ax.axvspan(1.0, t_max, color="0.92", zorder=0, label="_extrapolation")
-        ax.set_xlabel("t")
-        ax.set_ylabel(ylabel, fontsize="small")
-        ax.grid(True, alpha=0.3)
-        if k == 0:
-            ax.legend(loc="upper left", fontsize="x-small")
+    draw_interp_curves([fig.add_subplot(1, len(PANELS), k + 1) for k in range(len(PANELS))], curves)
     if title:
         fig.suptitle(title, fontsize="medium")
     fig.tight_layout()
