@@ -3,6 +3,7 @@
     python benchmarks/gmsm_faust_r.py --launch [--run-dir DIR] [--faust-r DIR] [--max-time HH:MM:SS]
                                       [--burn-in-epoch E]
     python benchmarks/gmsm_faust_r.py --summarize RUN_DIR [--burn-in-epoch E]
+    python benchmarks/gmsm_faust_r.py --pairwise-baseline SOURCE_RUN_DIR --run-dir DIR [--max-time ...]
 
 ``--launch`` runs, one after the other (each a subprocess, ``OMP_NUM_THREADS=--threads``):
 
@@ -18,7 +19,11 @@
 
 The ``pairwise`` baseline of the issue (``model.graph.enabled=false``, the same schedule) is the run up to the
 burn-in checkpoint (identical training, same seed); a separately trained pairwise run of the full budget is
-``train.py experiment=gmsm_faust_r_cpu model.graph.enabled=false``. Seconds per training pair come from the
+``train.py experiment=gmsm_faust_r_cpu model.graph.enabled=false``. ``--pairwise-baseline SOURCE_RUN_DIR`` gives that
+run for the cost of its second half only: it resumes SOURCE's burn-in checkpoint (identical pairwise training up to
+there) with ``model.graph.enabled=false`` and the same ``--max-time`` (Lightning's timer state is in the checkpoint,
+so it stops at the same total budget), into ``--run-dir``, then evaluates its last checkpoint pairwise
+(``RUN_DIR/eval_pairwise``). Seconds per training pair come from the
 TensorBoard wall times of the training loss; the peak memory of the evaluations from their metrics.json.
 """
 
@@ -31,6 +36,7 @@ import sys
 from pathlib import Path
 
 import bench_common
+from shapecorr.models.gmsm import GRAPH_FILE
 from training_runs import markdown_tables, read_metrics, read_scalars, summarize_run
 
 REPO = Path(__file__).resolve().parents[1]
@@ -54,6 +60,13 @@ def train_command(run_dir: Path, data: list[str], max_time: str, burn_in_epoch: 
     return [sys.executable, "train.py", "experiment=gmsm_faust_r_cpu", f"trainer.max_time={max_time}",
             f"model.graph.burn_in={burn_in_epoch}", "model.graph.update_every=2", "trainer.check_val_every_n_epoch=2",
             "checkpoint.every_n_epochs=1", *data, f"hydra.run.dir={run_dir}"]
+
+
+def pairwise_baseline_command(run_dir: Path, data: list[str], max_time: str, burn_in_ckpt: Path) -> list[str]:
+    """The G-MSM schedule with the graph off, resumed from the burn-in checkpoint of a G-MSM run."""
+    return [sys.executable, "train.py", "experiment=gmsm_faust_r_cpu", f"trainer.max_time={max_time}",
+            "model.graph.enabled=false", "trainer.check_val_every_n_epoch=2", "checkpoint.every_n_epochs=1", *data,
+            f"ckpt_path={burn_in_ckpt}", f"hydra.run.dir={run_dir}"]
 
 
 def eval_command(run_dir: Path, data: list[str], name: str, ckpt: Path, matching: str) -> list[str]:
@@ -100,6 +113,8 @@ def main(argv=None) -> int:
     mode = parser.add_mutually_exclusive_group(required=True)
     mode.add_argument("--launch", action="store_true", help="train, evaluate, then summarize")
     mode.add_argument("--summarize", metavar="RUN_DIR", help="summarize an existing run (and run missing evals)")
+    mode.add_argument("--pairwise-baseline", metavar="SOURCE_RUN_DIR",
+                      help="resume SOURCE's burn-in checkpoint with the graph off into --run-dir, evaluate pairwise")
     parser.add_argument("--run-dir", default=str(REPO / "outputs" / "bench" / "gmsm_faust_r"))
     parser.add_argument("--faust-r", default=os.environ.get("SHAPECORR_FAUST_R"),
                         help="FAUST_r folder (default: $SHAPECORR_FAUST_R)")
@@ -110,13 +125,18 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default=str(RESULT))
     args = parser.parse_args(argv)
 
-    run_dir = Path(args.run_dir if args.launch else args.summarize).absolute()
+    run_dir = Path(args.summarize if args.summarize else args.run_dir).absolute()
     data = [f"data.root={args.faust_r}"] if args.faust_r else []
     if args.launch and "train" not in args.skip:
         bench_common.run_command(train_command(run_dir, data, args.max_time, args.burn_in_epoch), args.threads, REPO)
+    if args.pairwise_baseline and "train" not in args.skip:
+        source = checkpoint_of_epoch(Path(args.pairwise_baseline).absolute(), args.burn_in_epoch)
+        bench_common.run_command(pairwise_baseline_command(run_dir, data, args.max_time, source), args.threads, REPO)
     last = run_dir / "checkpoints" / "last.ckpt"
     evals = {"eval_graph": (lambda: last, "graph"), "eval_pairwise": (lambda: last, "pairwise"),
              "eval_burn_in": (lambda: checkpoint_of_epoch(run_dir, args.burn_in_epoch), "pairwise")}
+    if args.pairwise_baseline or not (run_dir / "checkpoints" / GRAPH_FILE).is_file():
+        evals = {"eval_pairwise": evals["eval_pairwise"]}  # a run without a graph: only its direct maps
     for name, (ckpt, matching) in evals.items():
         if name not in args.skip and not (run_dir / name / "metrics.json").is_file():
             bench_common.run_command(eval_command(run_dir, data, name, ckpt(), matching), args.threads, REPO)
