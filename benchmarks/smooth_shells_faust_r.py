@@ -42,17 +42,12 @@ def _peak_mb() -> float:
 def _load(root: Path, name: str, cache, config, device):
     from shapecorr.axiomatic.smooth_shells import shells_shape
     from shapecorr.data.io import load_shape, read_vts
-    from shapecorr.data.operators import (
-        OperatorConfig,
-        descriptor_cached,
-        eigenbasis_cached,
-    )
+    from shapecorr.data.operators import OperatorConfig, compute_operators
 
     shape = load_shape(root / "off" / f"{name}.off")
     v, f = shape.verts.numpy().astype(np.float64), shape.faces.numpy()
-    ops = OperatorConfig(n_eig=config.num_eigs, descriptors=("shot",))
-    eig = eigenbasis_cached(cache, v, f, ops)
-    shot = descriptor_cached(cache, v, f, ops, "shot")
+    ops = compute_operators(cache, v, f, OperatorConfig(request={"eigenbasis": {"k": config.num_eigs}, "shot": {}}))
+    eig, shot = ops["eigenbasis"], ops["shot"]["shot"]
     s = shells_shape(shape.verts, shape.faces, torch.from_numpy(eig["evals"]).float(),
                      torch.from_numpy(eig["evecs"]).float(), torch.from_numpy(eig["mass"]).float(),
                      shot=torch.from_numpy(shot).float(), name=name)

@@ -114,6 +114,12 @@ class SmoothShellsConfig:
         Rigid surrogate runs (0.11, 0.1, 1, 5 rounds per layer).
     rigid_rotations : tuple of int
         Candidate counts: 2 rotations about the 3rd principal axis, then 4 about the 1st.
+    rigid_feature_score : float
+        Weight of a descriptor-agreement term added to the rigid candidates' scores (project option, default 0
+        = the original): the per-vertex basis features (``Phi F``, SHOT + HKS, :func:`basis_features`) join
+        ``[xyz, normals]`` in the residual, scaled to ``rigid_feature_score * ||Y||``. Intrinsic descriptors
+        tell a human's front from its back where the extrinsic residual of the short surrogate run barely does
+        (docs/smooth_shells.md §6); needs ``lambda_feat > 0`` (the features).
     rigid_joint : bool
         Score all combinations of the two candidate sets together (2 x 4 = 8 surrogate runs) instead of the
         original's greedy sequence (2 + 4), which misses a half turn about the 2nd principal axis when the
@@ -149,6 +155,7 @@ class SmoothShellsConfig:
     rigid_lambda_lap: float = 1.0
     rigid_num_sub: int = 5
     rigid_rotations: tuple[int, ...] = (2, 4)
+    rigid_feature_score: float = 0.0
     rigid_joint: bool = False
     icp_iterations: int = 50
     mcmc_batch: int = 16
@@ -163,7 +170,8 @@ class SmoothShellsConfig:
             raise ConfigError(f"smooth_shells: need k_max >= {K_START} and k_array_length >= 1, got "
                               f"{self.k_max}, {self.k_array_length}")
         for name in ("fac_feat", "normal_damping", "lambda_feat", "lambda_arap_init", "lambda_lap", "mcmc_fac_feat",
-                     "score_fac_feat", "rigid_fac_feat", "rigid_normal_damping", "rigid_lambda_lap", "ridge"):
+                     "score_fac_feat", "rigid_fac_feat", "rigid_normal_damping", "rigid_lambda_lap", "ridge",
+                     "rigid_feature_score"):
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"smooth_shells.{name} must be >= 0, got {getattr(self, name)}")
         if self.num_mcmc < 0 or self.problem_size_init < 2 or self.rigid_num_sub < 1 or self.mcmc_batch < 1:
@@ -759,14 +767,32 @@ def _reattach_detail(pair: _Pair, verts_x, coeffs_x, tau, k):
     return torch.matmul(rot, (verts_x - shell_x)[..., None])[..., 0] + shifted
 
 
-def _score(pair: _Pair, run: _Run, st: _State, full_x, fac_feat, damping, normals_y_full):
-    """Area-weighted residual of the correspondences of the re-attached shapes (lower is better): (B,)."""
+def _descriptor_block(pair: _Pair, weight: float):
+    """Per-vertex basis features ``Phi F`` of X (n_x, c) and Y (n_y, c), scaled to ``weight * ||Y||``."""
+    k = pair.feat_x.shape[0]
+    desc_x = pair.phi_x[:, :k] @ pair.feat_x.to(pair.dtype)
+    desc_y = pair.phi_y[:, :k] @ pair.feat_y.to(pair.dtype)
+    scale = weight * pair.verts_y.norm() / desc_y.norm().clamp_min(1e-30)
+    return scale * desc_x, scale * desc_y
+
+
+def _score(pair: _Pair, run: _Run, st: _State, full_x, fac_feat, damping, normals_y_full, feature_weight=0.0):
+    """Area-weighted residual of the correspondences of the re-attached shapes (lower is better): (B,).
+
+    ``feature_weight > 0`` adds the descriptor disagreement of the pairs (:func:`_descriptor_block`).
+    """
     normals_x = _batched_normals(full_x, pair.faces_x)
     emb_x, emb_y = _embeddings(pair, st, full_x, normals_x, pair.verts_y, normals_y_full, fac_feat, damping)
     assign, assign_inv = _correspondences(pair, run, emb_x, emb_y)
     _, fac_n = _embedding_scales(pair, pair.verts_y, normals_y_full, 0, fac_feat, damping)
     px = torch.cat([full_x, fac_n * normals_x], -1)
     py = torch.cat([pair.verts_y, fac_n * normals_y_full], -1)[None]
+    if feature_weight > 0:
+        if pair.feat_x is None:
+            raise ConfigError("smooth_shells.rigid_feature_score needs the basis features (lambda_feat > 0)")
+        desc_x, desc_y = _descriptor_block(pair, feature_weight)
+        px = torch.cat([px, desc_x[None].expand(px.shape[0], -1, -1)], -1)
+        py = torch.cat([py, desc_y[None]], -1)
     b = full_x.shape[0]
     sx, sy = run.samples_x[None].expand(b, -1), run.samples_y[None].expand(b, -1)
     d = (_gather_rows(px, sx) - _gather_rows(py, assign)).norm(dim=-1)
@@ -932,7 +958,9 @@ def rigid_alignment(x: ShellsShape, y: ShellsShape, config: SmoothShellsConfig =
         run_b = replace(run, lambda_lap=torch.full((b,), config.rigid_lambda_lap))
         _layered(pair, run_b, st, range(RIGID_K_MIN, K_START + 1))
         full = _reattach_detail(pair, verts_b, coeffs_b, st.tau, K_START)
-        return _score(pair, run_b, st, full, config.rigid_fac_feat, config.rigid_normal_damping, normals_y_full), poses
+        scores = _score(pair, run_b, st, full, config.rigid_fac_feat, config.rigid_normal_damping, normals_y_full,
+                        config.rigid_feature_score)
+        return scores, poses
 
     all_scores = []
     count3, count1 = config.rigid_rotations

@@ -141,7 +141,8 @@ def test_recovers_a_remeshing(base):
     assert err < 1.0  # mean error below one edge length
 
 
-def test_rigid_stage_resolves_a_half_turn(base):
+@pytest.mark.parametrize("feature_score", [0.0, 0.3])
+def test_rigid_stage_resolves_a_half_turn(base, feature_score):
     rng = np.random.default_rng(3)
     centred = base["verts"] - base["verts"].mean(0)
     axis = np.linalg.svd(centred, full_matrices=False)[2][2]  # 3rd principal axis
@@ -150,7 +151,7 @@ def test_rigid_stage_resolves_a_half_turn(base):
     pair = _permuted_copy(base, half_turn, np.zeros(3), rng, "blob_flipped")
     x = base["x"]
     feats = basis_features(x, pair["y"])
-    rot, trans, scores = rigid_alignment(x, pair["y"], SMALL, feats)
+    rot, trans, scores = rigid_alignment(x, pair["y"], replace(SMALL, rigid_feature_score=feature_score), feats)
     aligned = (x.spectral.verts @ rot.T + trans).numpy()
     target = pair["verts_y"][pair["gt"]]
     err_aligned = np.linalg.norm(aligned - target, axis=1).mean()
@@ -160,6 +161,28 @@ def test_rigid_stage_resolves_a_half_turn(base):
     angle = math.degrees(math.acos(np.clip((np.trace(rot.numpy().astype(float) @ half_turn.T) - 1) / 2, -1, 1)))
     assert angle < 30.0
     assert [len(s) for s in scores] == list(SMALL.rigid_rotations)
+
+
+def test_feature_score_needs_the_basis_features(base, rigid_pair):
+    with pytest.raises(ConfigError, match="rigid_feature_score needs the basis features"):
+        rigid_alignment(base["x"], rigid_pair["y"], replace(SMALL, rigid_feature_score=0.3), feats=None)
+    with pytest.raises(ConfigError, match="rigid_feature_score"):
+        replace(SMALL, rigid_feature_score=-1.0)
+
+
+def test_feature_score_widens_the_margin_of_the_correct_pose(base, rigid_pair):
+    """The descriptor disagreement is an extra non-negative block of the residual: no score falls, the correct
+    candidate (exact pairs of a rigid copy: equal descriptors) keeps its score, the wrong ones rise."""
+    x, y = base["x"], rigid_pair["y"]
+    feats = basis_features(x, y)
+    _, _, plain = rigid_alignment(x, y, SMALL_JOINT, feats)
+    _, _, with_features = rigid_alignment(x, y, replace(SMALL_JOINT, rigid_feature_score=0.3), feats)
+    plain, with_features = plain[0], with_features[0]
+    best = int(torch.argmin(plain))
+    assert int(torch.argmin(with_features)) == best
+    assert torch.isclose(with_features[best], plain[best], rtol=1e-6)
+    others = torch.arange(len(plain)) != best
+    assert (with_features[others] > 2.0 * plain[others]).all()
 
 
 def test_deterministic_for_a_seed_and_independent_of_the_batch(base, rigid_pair):
