@@ -114,12 +114,12 @@ class SmoothShellsConfig:
         Rigid surrogate runs (0.11, 0.1, 1, 5 rounds per layer).
     rigid_rotations : tuple of int
         Candidate counts: 2 rotations about the 3rd principal axis, then 4 about the 1st.
-    rigid_feature_score : float
-        Weight of a descriptor-agreement term added to the rigid candidates' scores (project option, default 0
-        = the original): the per-vertex basis features (``Phi F``, SHOT + HKS, :func:`basis_features`) join
-        ``[xyz, normals]`` in the residual, scaled to ``rigid_feature_score * ||Y||``. Intrinsic descriptors
-        tell a human's front from its back where the extrinsic residual of the short surrogate run barely does
-        (docs/smooth_shells.md §6); needs ``lambda_feat > 0`` (the features).
+    score_descriptors : float
+        Weight of a descriptor-agreement term in the scores of the rigid candidates and of the random-search
+        proposals (project option; 0 = the original): the per-vertex basis features (``Phi F``, SHOT + HKS,
+        :func:`basis_features`) join ``[xyz, normals]`` in the residual, scaled to ``score_descriptors * ||Y||``.
+        Intrinsic descriptors tell a human's front from its back where the extrinsic residual of the short
+        surrogate runs barely does (docs/smooth_shells.md §6); needs ``lambda_feat > 0`` (the features).
     rigid_joint : bool
         Score all combinations of the two candidate sets together (2 x 4 = 8 surrogate runs) instead of the
         original's greedy sequence (2 + 4), which misses a half turn about the 2nd principal axis when the
@@ -155,7 +155,7 @@ class SmoothShellsConfig:
     rigid_lambda_lap: float = 1.0
     rigid_num_sub: int = 5
     rigid_rotations: tuple[int, ...] = (2, 4)
-    rigid_feature_score: float = 0.0
+    score_descriptors: float = 0.0
     rigid_joint: bool = False
     icp_iterations: int = 50
     mcmc_batch: int = 16
@@ -171,7 +171,7 @@ class SmoothShellsConfig:
                               f"{self.k_max}, {self.k_array_length}")
         for name in ("fac_feat", "normal_damping", "lambda_feat", "lambda_arap_init", "lambda_lap", "mcmc_fac_feat",
                      "score_fac_feat", "rigid_fac_feat", "rigid_normal_damping", "rigid_lambda_lap", "ridge",
-                     "rigid_feature_score"):
+                     "score_descriptors"):
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"smooth_shells.{name} must be >= 0, got {getattr(self, name)}")
         if self.num_mcmc < 0 or self.problem_size_init < 2 or self.rigid_num_sub < 1 or self.mcmc_batch < 1:
@@ -767,19 +767,26 @@ def _reattach_detail(pair: _Pair, verts_x, coeffs_x, tau, k):
     return torch.matmul(rot, (verts_x - shell_x)[..., None])[..., 0] + shifted
 
 
-def _descriptor_block(pair: _Pair, weight: float):
-    """Per-vertex basis features ``Phi F`` of X (n_x, c) and Y (n_y, c), scaled to ``weight * ||Y||``."""
-    k = pair.feat_x.shape[0]
-    desc_x = pair.phi_x[:, :k] @ pair.feat_x.to(pair.dtype)
-    desc_y = pair.phi_y[:, :k] @ pair.feat_y.to(pair.dtype)
+def _descriptor_block(pair: _Pair, feats, weight: float):
+    """Per-vertex basis features ``Phi F`` of X (n_x, c) and Y (n_y, c), scaled to ``weight * ||Y||``.
+
+    None when ``weight == 0``; ``feats``: :func:`basis_features` (required otherwise).
+    """
+    if not weight > 0:
+        return None
+    if feats is None:
+        raise ConfigError("smooth_shells.score_descriptors needs the basis features (lambda_feat > 0)")
+    k = feats[0].shape[0]
+    desc_x = pair.phi_x[:, :k] @ feats[0].to(pair.dtype)
+    desc_y = pair.phi_y[:, :k] @ feats[1].to(pair.dtype)
     scale = weight * pair.verts_y.norm() / desc_y.norm().clamp_min(1e-30)
     return scale * desc_x, scale * desc_y
 
 
-def _score(pair: _Pair, run: _Run, st: _State, full_x, fac_feat, damping, normals_y_full, feature_weight=0.0):
+def _score(pair: _Pair, run: _Run, st: _State, full_x, fac_feat, damping, normals_y_full, descriptors=None):
     """Area-weighted residual of the correspondences of the re-attached shapes (lower is better): (B,).
 
-    ``feature_weight > 0`` adds the descriptor disagreement of the pairs (:func:`_descriptor_block`).
+    ``descriptors`` (:func:`_descriptor_block`) add the descriptor disagreement of the pairs to the residual.
     """
     normals_x = _batched_normals(full_x, pair.faces_x)
     emb_x, emb_y = _embeddings(pair, st, full_x, normals_x, pair.verts_y, normals_y_full, fac_feat, damping)
@@ -787,10 +794,8 @@ def _score(pair: _Pair, run: _Run, st: _State, full_x, fac_feat, damping, normal
     _, fac_n = _embedding_scales(pair, pair.verts_y, normals_y_full, 0, fac_feat, damping)
     px = torch.cat([full_x, fac_n * normals_x], -1)
     py = torch.cat([pair.verts_y, fac_n * normals_y_full], -1)[None]
-    if feature_weight > 0:
-        if pair.feat_x is None:
-            raise ConfigError("smooth_shells.rigid_feature_score needs the basis features (lambda_feat > 0)")
-        desc_x, desc_y = _descriptor_block(pair, feature_weight)
+    if descriptors is not None:
+        desc_x, desc_y = descriptors
         px = torch.cat([px, desc_x[None].expand(px.shape[0], -1, -1)], -1)
         py = torch.cat([py, desc_y[None]], -1)
     b = full_x.shape[0]
@@ -938,6 +943,7 @@ def rigid_alignment(x: ShellsShape, y: ShellsShape, config: SmoothShellsConfig =
     c_init = _functional_map(pair, replace(run, lambda_lap=torch.tensor([0.0])), w_init.shape[0], batch=1)
     normals_y_full = _batched_normals(_shell(pair.phi_y, sy.coeffs[None], config.k_max), sy.faces)[0]
     y_centroid = _area_centroid(sy.verts.to(torch.float64), m_y)
+    descriptors = _descriptor_block(pair, feats, config.score_descriptors)
 
     def principal_axes(r, t):
         aligned = apply(r, t)
@@ -959,7 +965,7 @@ def rigid_alignment(x: ShellsShape, y: ShellsShape, config: SmoothShellsConfig =
         _layered(pair, run_b, st, range(RIGID_K_MIN, K_START + 1))
         full = _reattach_detail(pair, verts_b, coeffs_b, st.tau, K_START)
         scores = _score(pair, run_b, st, full, config.rigid_fac_feat, config.rigid_normal_damping, normals_y_full,
-                        config.rigid_feature_score)
+                        descriptors)
         return scores, poses
 
     all_scores = []
@@ -1005,7 +1011,8 @@ def random_search_init(x: ShellsShape, y: ShellsShape, aligned_x: torch.Tensor,
         X after the rigid stage.
     config : SmoothShellsConfig
     feats : tuple, optional
-        Unused by the proposals (``lambda_feat = 0``); accepted for symmetry.
+        :func:`basis_features`: unused by the proposals (``lambda_feat = 0``), only by the scores when
+        ``config.score_descriptors > 0``.
     generator : torch.Generator, optional
 
     Returns
@@ -1031,6 +1038,7 @@ def random_search_init(x: ShellsShape, y: ShellsShape, aligned_x: torch.Tensor,
     laps = torch.tensor(config.mcmc_lambda_laps, dtype=torch.float64)[choice]
     w20 = sigmoid_shell_weights(K_START, dtype=dtype, device=dev)
     normals_y_full = _batched_normals(_shell(pair.phi_y, sy.coeffs[None], config.k_max), sy.faces)[0]
+    descriptors = _descriptor_block(pair, feats, config.score_descriptors)
     scores, taus, fmaps = [], [], []
     for start in range(0, num, config.mcmc_batch):
         stop = min(num, start + config.mcmc_batch)
@@ -1045,7 +1053,8 @@ def random_search_init(x: ShellsShape, y: ShellsShape, aligned_x: torch.Tensor,
                    nn_backend=config.nn_backend)
         _layered(pair, run, st, range(MCMC_K_MIN, K_START + 1))
         full = _reattach_detail(pair, st.verts_x, st.coeffs_x, st.tau, K_START)
-        scores.append(_score(pair, run, st, full, config.score_fac_feat, config.normal_damping, normals_y_full))
+        scores.append(_score(pair, run, st, full, config.score_fac_feat, config.normal_damping, normals_y_full,
+                             descriptors))
         taus.append(st.tau)
         fmaps.append(st.fmap)
     scores_t = torch.cat(scores)

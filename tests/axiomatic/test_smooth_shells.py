@@ -19,6 +19,7 @@ from shapecorr.axiomatic.smooth_shells import (
     _nearest,
     basis_features,
     k_schedule,
+    random_search_init,
     refine,
     rigid_alignment,
     shells_shape,
@@ -151,7 +152,7 @@ def test_rigid_stage_resolves_a_half_turn(base, feature_score):
     pair = _permuted_copy(base, half_turn, np.zeros(3), rng, "blob_flipped")
     x = base["x"]
     feats = basis_features(x, pair["y"])
-    rot, trans, scores = rigid_alignment(x, pair["y"], replace(SMALL, rigid_feature_score=feature_score), feats)
+    rot, trans, scores = rigid_alignment(x, pair["y"], replace(SMALL, score_descriptors=feature_score), feats)
     aligned = (x.spectral.verts @ rot.T + trans).numpy()
     target = pair["verts_y"][pair["gt"]]
     err_aligned = np.linalg.norm(aligned - target, axis=1).mean()
@@ -164,10 +165,13 @@ def test_rigid_stage_resolves_a_half_turn(base, feature_score):
 
 
 def test_feature_score_needs_the_basis_features(base, rigid_pair):
-    with pytest.raises(ConfigError, match="rigid_feature_score needs the basis features"):
-        rigid_alignment(base["x"], rigid_pair["y"], replace(SMALL, rigid_feature_score=0.3), feats=None)
-    with pytest.raises(ConfigError, match="rigid_feature_score"):
-        replace(SMALL, rigid_feature_score=-1.0)
+    with pytest.raises(ConfigError, match="score_descriptors needs the basis features"):
+        rigid_alignment(base["x"], rigid_pair["y"], replace(SMALL, score_descriptors=0.3), feats=None)
+    with pytest.raises(ConfigError, match="score_descriptors needs the basis features"):
+        random_search_init(base["x"], rigid_pair["y"], rigid_pair["y"].spectral.verts,
+                           replace(SMALL, score_descriptors=0.3), feats=None)
+    with pytest.raises(ConfigError, match="score_descriptors"):
+        replace(SMALL, score_descriptors=-1.0)
 
 
 def test_feature_score_widens_the_margin_of_the_correct_pose(base, rigid_pair):
@@ -176,7 +180,7 @@ def test_feature_score_widens_the_margin_of_the_correct_pose(base, rigid_pair):
     x, y = base["x"], rigid_pair["y"]
     feats = basis_features(x, y)
     _, _, plain = rigid_alignment(x, y, SMALL_JOINT, feats)
-    _, _, with_features = rigid_alignment(x, y, replace(SMALL_JOINT, rigid_feature_score=0.3), feats)
+    _, _, with_features = rigid_alignment(x, y, replace(SMALL_JOINT, score_descriptors=0.3), feats)
     plain, with_features = plain[0], with_features[0]
     best = int(torch.argmin(plain))
     assert int(torch.argmin(with_features)) == best

@@ -1,0 +1,110 @@
+"""Benchmark: Smooth Shells through evaluate.py on the FAUST_r test split, alone and as post-processing.
+
+    python benchmarks/smooth_shells_evaluate.py --faust-r DIR [--max-pairs 40] [--runs NAME ...]
+        [--run-dir DIR] [--deep-shells-weights FILE] [--threads 1] [--out FILE]
+
+Each run is one ``evaluate.py`` call (a subprocess with ``OMP_NUM_THREADS=--threads``) on the same evenly spaced
+``--max-pairs`` of the 380 ordered pairs of shapes 080-099 (``max_pairs``; all 380 with ``--max-pairs 0``), into
+``RUN_DIR/<name>``; an interrupted run resumes where it stopped (evaluate.py skips the pairs it has written).
+
+========================  =================================================================================
+name                      evaluate.py arguments
+========================  =================================================================================
+smooth_shells_norigid     ``model=smooth_shells model.no_rigid=true`` (FAUST_r is consistently oriented)
+smooth_shells_published   ``model=smooth_shells`` (the published isometric preset, rigid stage on)
+smooth_shells_features    ``model=smooth_shells model.rigid_feature_score=0.3`` (rigid stage with descriptors)
+deep_shells               ``model=deep_shells_published`` (the authors' released weights)
+deep_shells_refined       the same with ``postprocess=smooth_shells`` (its maps refined from k = 20)
+descriptor_nn             ``model=descriptor_nn`` (WKS nearest neighbours: a rough map)
+descriptor_nn_refined     the same with ``postprocess=smooth_shells``
+========================  =================================================================================
+
+Recorded per run: the metrics of its ``metrics.json`` (mean / median geodesic error, PCK AUC, seconds per
+pair, peak memory). Writes ``benchmarks/results/smooth_shells_evaluate.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import bench_common
+from training_runs import read_metrics
+
+REPO = Path(__file__).resolve().parents[1]
+RESULT = REPO / "benchmarks" / "results" / "smooth_shells_evaluate.json"
+#: Published FAUST_r errors (fraction of sqrt(area)): Smooth Shells 2.5 (Deep Shells paper's table), Deep Shells
+#: 1.7, NeuroMorph 2.3 -> 1.5 with Smooth Shells post-processing (NeuroMorph paper).
+PUBLISHED = {"smooth_shells": 0.025, "deep_shells": 0.017, "neuromorph": 0.023, "neuromorph_refined": 0.015}
+EXTRA_KEYS = ("peak_memory_mb", "n_pairs")
+
+RUNS = {
+    "smooth_shells_norigid": ["model=smooth_shells", "model.no_rigid=true"],
+    "smooth_shells_published": ["model=smooth_shells"],
+    "smooth_shells_features": ["model=smooth_shells", "model.rigid_feature_score=0.3"],
+    "deep_shells": ["model=deep_shells_published"],
+    "deep_shells_refined": ["model=deep_shells_published", "postprocess=smooth_shells"],
+    "descriptor_nn": ["model=descriptor_nn"],
+    "descriptor_nn_refined": ["model=descriptor_nn", "postprocess=smooth_shells"],
+}
+
+
+def eval_command(name: str, out: Path, faust_r: str, max_pairs: int, weights: str | None) -> list[str]:
+    args = list(RUNS[name])
+    if name.startswith("deep_shells"):
+        if not weights:
+            raise SystemExit(f"run {name}: pass --deep-shells-weights or set SHAPECORR_DEEP_SHELLS_WEIGHTS")
+        args.append(f"model.pretrained={weights}")
+    if max_pairs > 0:
+        args.append(f"max_pairs={max_pairs}")
+    return [sys.executable, "evaluate.py", *args, "data=faust_r", f"data.root={faust_r}", f"output_dir={out}",
+            f"hydra.run.dir={out}", "progress=false", "n_examples=2"]
+
+
+def collect(folder: Path) -> dict:
+    record = read_metrics(folder)
+    metrics = json.loads((folder / "metrics.json").read_text())
+    record.update({k: metrics[k] for k in EXTRA_KEYS if k in metrics})
+    return record
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--faust-r", default=os.environ.get("SHAPECORR_FAUST_R"),
+                        help="FAUST_r folder (default: $SHAPECORR_FAUST_R)")
+    parser.add_argument("--max-pairs", type=int, default=40, help="evenly spaced test pairs (0: all 380)")
+    parser.add_argument("--runs", nargs="+", default=list(RUNS), choices=list(RUNS), help="runs, in this order")
+    parser.add_argument("--run-dir", default=str(REPO / "outputs" / "bench" / "smooth_shells_evaluate"))
+    parser.add_argument("--deep-shells-weights", default=os.environ.get("SHAPECORR_DEEP_SHELLS_WEIGHTS"),
+                        help="the authors' released Deep Shells weights (default: $SHAPECORR_DEEP_SHELLS_WEIGHTS)")
+    parser.add_argument("--threads", type=int, default=1, help="OMP_NUM_THREADS of the runs")
+    parser.add_argument("--collect-only", action="store_true", help="only collect the runs already finished")
+    parser.add_argument("--out", default=str(RESULT))
+    args = parser.parse_args(argv)
+    if not args.faust_r:
+        parser.error("set --faust-r or SHAPECORR_FAUST_R to the FAUST_r folder")
+    run_dir = Path(args.run_dir).absolute()
+    results = {}
+    for name in args.runs:
+        folder = run_dir / name
+        if not args.collect_only and not (folder / "metrics.json").is_file():
+            bench_common.run_command(eval_command(name, folder, args.faust_r, args.max_pairs,
+                                                  args.deep_shells_weights), args.threads, REPO)
+        if (folder / "metrics.json").is_file():
+            results[name] = collect(folder)
+            print(f"{name}: mean geodesic error {100 * results[name]['mean_geodesic_error']:.2f} (x100), "
+                  f"{results[name].get('seconds_per_pair', float('nan')):.1f} s/pair", flush=True)
+    summary = {"run_dir": str(run_dir), "max_pairs": args.max_pairs, "threads": args.threads, "runs": results,
+               "published": PUBLISHED,
+               "units": "errors: geodesic distance / sqrt(area of the target) (x100 = percent)"}
+    report = bench_common.summary_report("smooth_shells_evaluate.py", sys.argv[1:] if argv is None else list(argv),
+                                         summary)
+    bench_common.write_report(args.out, report)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
