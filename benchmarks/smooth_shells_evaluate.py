@@ -17,6 +17,9 @@ deep_shells               ``model=deep_shells_published`` (the authors' released
 deep_shells_refined       the same with ``postprocess=smooth_shells`` (its maps refined from k = 20)
 descriptor_nn             ``model=descriptor_nn`` (WKS nearest neighbours: a rough map)
 descriptor_nn_refined     the same with ``postprocess=smooth_shells``
+interclass                ``model=smooth_shells_interclass data=synthetic`` on 4 humanoid <-> quadruped pairs of
+                          the embedded data's test split (:data:`INTERCLASS_PAIRS`; semantic ground truth)
+interclass_descriptor_nn  ``model=descriptor_nn`` on the same pairs (a reference for that ground truth)
 ========================  =================================================================================
 
 Recorded per run: the metrics of its ``metrics.json`` (mean / median geodesic error, PCK AUC, seconds per
@@ -39,7 +42,7 @@ RESULT = REPO / "benchmarks" / "results" / "smooth_shells_evaluate.json"
 #: Published FAUST_r errors (fraction of sqrt(area)): Smooth Shells 2.5 (Deep Shells paper's table), Deep Shells
 #: 1.7, NeuroMorph 2.3 -> 1.5 with Smooth Shells post-processing (NeuroMorph paper).
 PUBLISHED = {"smooth_shells": 0.025, "deep_shells": 0.017, "neuromorph": 0.023, "neuromorph_refined": 0.015}
-EXTRA_KEYS = ("peak_memory_mb", "n_pairs")
+EXTRA_KEYS = ("peak_memory_mb", "n_pairs", "median_seconds_per_pair", "mean_geodesic_error_sym")
 
 RUNS = {
     "smooth_shells_norigid": ["model=smooth_shells", "model.no_rigid=true"],
@@ -49,19 +52,29 @@ RUNS = {
     "deep_shells_refined": ["model=deep_shells_published", "postprocess=smooth_shells"],
     "descriptor_nn": ["model=descriptor_nn"],
     "descriptor_nn_refined": ["model=descriptor_nn", "postprocess=smooth_shells"],
+    "interclass": ["model=smooth_shells_interclass"],
+    "interclass_descriptor_nn": ["model=descriptor_nn"],
 }
+#: Humanoid <-> quadruped pairs of the embedded default dataset's test split (subjects 6, 7 and quadruped 3).
+INTERCLASS_PAIRS = (("human_s06_p00", "quad_s03_p00"), ("human_s07_p02", "quad_s03_p02"),
+                    ("quad_s03_p04", "human_s06_p04"), ("quad_s03_p01", "human_s07_p01"))
 
 
 def eval_command(name: str, out: Path, faust_r: str, max_pairs: int, weights: str | None) -> list[str]:
     args = list(RUNS[name])
+    common = [f"output_dir={out}", f"hydra.run.dir={out}", "progress=false", "n_examples=4"]
+    if name.startswith("interclass"):
+        pair_file = out.parent / "interclass_pairs.txt"
+        pair_file.parent.mkdir(parents=True, exist_ok=True)
+        pair_file.write_text("".join(f"{a} {b}\n" for a, b in INTERCLASS_PAIRS))
+        return [sys.executable, "evaluate.py", *args, "data=synthetic", f"pair_file={pair_file}", *common]
     if name.startswith("deep_shells"):
         if not weights:
             raise SystemExit(f"run {name}: pass --deep-shells-weights or set SHAPECORR_DEEP_SHELLS_WEIGHTS")
         args.append(f"model.pretrained={weights}")
     if max_pairs > 0:
         args.append(f"max_pairs={max_pairs}")
-    return [sys.executable, "evaluate.py", *args, "data=faust_r", f"data.root={faust_r}", f"output_dir={out}",
-            f"hydra.run.dir={out}", "progress=false", "n_examples=2"]
+    return [sys.executable, "evaluate.py", *args, "data=faust_r", f"data.root={faust_r}", *common]
 
 
 def collect(folder: Path) -> dict:
