@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 import pytorch_lightning as pl
 import torch
+from pytorch_lightning.callbacks import Timer
 
 from shapecorr.data.cache import atomic_open
 from shapecorr.data.operators import merge_requests
@@ -376,10 +377,33 @@ class ShapeGraphCallback(pl.Callback):
             self.build(trainer, pl_module, last)
 
     def on_train_epoch_end(self, trainer, pl_module) -> None:
-        """Build the graph at the end of the epochs the schedule names (burn_in, then every update_every)."""
+        """Build the graph at the end of the epochs the schedule names (burn_in, then every update_every).
+
+        Not when training ends with this epoch (stop requested, ``max_epochs`` or ``max_time`` reached): no step
+        would use that graph, and a run resumed with a larger budget rebuilds it in :meth:`on_train_start`.
+        """
         epoch = trainer.current_epoch
-        if pl_module.graph_options.builds_at(epoch):
+        if pl_module.graph_options.builds_at(epoch) and not training_ends(trainer, epoch):
             self.build(trainer, pl_module, epoch)
+
+
+def training_ends(trainer, epoch: int) -> bool:
+    """Whether no training step follows 0-based ``epoch``.
+
+    True when a stop was requested (e.g. by Lightning's ``Timer`` at a batch end), ``epoch`` is the last of
+    ``max_epochs``, or the ``max_time`` budget is spent.
+    """
+    if getattr(trainer, "should_stop", False):
+        return True
+    max_epochs = getattr(trainer, "max_epochs", None)
+    if max_epochs is not None and max_epochs >= 0 and epoch + 1 >= max_epochs:
+        return True
+    for callback in getattr(trainer, "callbacks", None) or ():
+        if isinstance(callback, Timer):
+            remaining = callback.time_remaining()
+            if remaining is not None and remaining <= 0:
+                return True
+    return False
 
 
 __all__ = [
@@ -392,4 +416,5 @@ __all__ = [
     "graph_path",
     "load_graph",
     "save_graph",
+    "training_ends",
 ]

@@ -8,6 +8,7 @@ Shapes are small deformed icospheres (162 vertices) built in memory; the network
 from __future__ import annotations
 
 import json
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -15,6 +16,8 @@ import pytest
 import scipy.sparse as sp
 import torch
 import trimesh
+from pytorch_lightning.callbacks import Timer
+from pytorch_lightning.trainer.states import RunningStage
 
 from shapecorr.data.cache import ShapeCache
 from shapecorr.data.datasets import PairSample, ShapeSample
@@ -32,6 +35,7 @@ from shapecorr.models.gmsm import (
     ShapeGraphCallback,
     _gather,
     load_graph,
+    training_ends,
 )
 from shapecorr.nn.diffusion_net import DiffusionNetBackbone
 
@@ -194,6 +198,34 @@ def test_callback_schedule_persistence_and_resume(tmp_path, shapes):
     cb3.on_train_start(_trainer(tmp_path, shapes, 3), _gmsm(graph={"burn_in": 2, "update_every": 2,
                                                                      "progress": False}))
     assert cb3.n_builds == 1 and load_graph(path).epoch == 2
+
+
+@pytest.mark.parametrize("ending", ["should_stop", "max_epochs", "max_time"])
+def test_no_graph_build_when_training_ends_with_the_epoch(tmp_path, shapes, ending):
+    """A graph built at the end of the last epoch would train nothing: the build is skipped (a resumed run with a
+    larger budget rebuilds it at train start)."""
+    model = _gmsm(graph={"burn_in": 2, "update_every": 2, "progress": False})
+    cb = ShapeGraphCallback()
+    trainer = _trainer(tmp_path, shapes, 2)
+    if ending == "should_stop":
+        trainer.should_stop = True
+    elif ending == "max_epochs":
+        trainer.max_epochs = 3
+    else:
+        timer = Timer(duration={"seconds": 1})
+        timer._start_time[RunningStage.TRAINING] = time.monotonic() - 5.0
+        trainer.callbacks = [timer]
+    assert training_ends(trainer, 2)
+    cb.on_train_epoch_end(trainer, model)
+    assert cb.n_builds == 0 and model.pseudo_maps is None
+    assert not (tmp_path / "checkpoints" / GRAPH_FILE).exists()
+    # the same epoch with budget left builds
+    going_on = _trainer(tmp_path, shapes, 2)
+    going_on.max_epochs, going_on.callbacks = 10, [Timer(duration={"hours": 1})]
+    going_on.callbacks[0]._start_time[RunningStage.TRAINING] = time.monotonic()
+    assert not training_ends(going_on, 2)
+    cb.on_train_epoch_end(going_on, model)
+    assert cb.n_builds == 1
 
 
 def test_sharding_is_disjoint_and_covering():
