@@ -45,7 +45,7 @@ RESULT = REPO / "benchmarks" / "results" / "gmsm_faust_r.json"
 PUBLISHED_FAUST_R_ERROR = 0.015
 #: Our Deep Shells CPU-budget run (benchmarks/results/deep_shells_faust_r.json, 2 h of one core).
 DEEP_SHELLS_CPU_BUDGET_ERROR = 0.0208
-EXTRA_KEYS = ("cycle_consistency", "peak_memory_mb", "n_unreachable", "graph_variant")
+EXTRA_KEYS = ("cycle_consistency", "cycle_consistency_pairwise", "peak_memory_mb", "unreachable_pairs", "variant")
 
 
 def checkpoint_of_epoch(run_dir: Path, epoch: int) -> Path:
@@ -80,7 +80,8 @@ def _extra(folder: Path) -> dict:
     if not path.is_file():
         return {}
     metrics = json.loads(path.read_text())
-    return {k: metrics[k] for k in EXTRA_KEYS if k in metrics}
+    flat = {**metrics.get("multi_shape", {}), **metrics}  # cycle consistency etc. sit under "multi_shape"
+    return {k: flat[k] for k in EXTRA_KEYS if k in flat}
 
 
 def seconds_per_training_pair(run_dir: Path, pairs_per_step: int) -> float | None:
