@@ -30,7 +30,6 @@ TensorBoard wall times of the training loss; the peak memory of the evaluations 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
@@ -75,15 +74,6 @@ def eval_command(run_dir: Path, data: list[str], name: str, ckpt: Path, matching
             *data, f"output_dir={out}", f"hydra.run.dir={out}"]
 
 
-def _extra(folder: Path) -> dict:
-    path = folder / "metrics.json"
-    if not path.is_file():
-        return {}
-    metrics = json.loads(path.read_text())
-    flat = {**metrics.get("multi_shape", {}), **metrics}  # cycle consistency etc. sit under "multi_shape"
-    return {k: flat[k] for k in EXTRA_KEYS if k in flat}
-
-
 def seconds_per_training_pair(run_dir: Path, pairs_per_step: int) -> float | None:
     """Median wall seconds per training pair between consecutive logged training-loss points."""
     series = read_scalars(run_dir).get("train/loss_step", [])
@@ -99,7 +89,7 @@ def summarize(run_dir: Path) -> dict:
     for name in ("eval_graph", "eval_pairwise", "eval_burn_in"):
         folder = run_dir / name
         if (folder / "metrics.json").is_file():
-            finals[name] = {**read_metrics(folder), **_extra(folder)}
+            finals[name] = read_metrics(folder, EXTRA_KEYS)
     summary = summarize_run(run_dir)
     summary["final"] = finals
     summary["seconds_per_training_pair"] = seconds_per_training_pair(run_dir, 4)

@@ -12,7 +12,7 @@ name                      evaluate.py arguments
 ========================  =================================================================================
 smooth_shells_norigid     ``model=smooth_shells model.no_rigid=true`` (FAUST_r is consistently oriented)
 smooth_shells_published   ``model=smooth_shells`` (the published isometric preset, rigid stage on)
-smooth_shells_features    ``model=smooth_shells model.rigid_feature_score=0.3`` (rigid stage with descriptors)
+smooth_shells_features    ``model=smooth_shells model.score_descriptors=0.3`` (descriptors in the scores)
 deep_shells               ``model=deep_shells_published`` (the authors' released weights)
 deep_shells_refined       the same with ``postprocess=smooth_shells`` (its maps refined from k = 20)
 descriptor_nn             ``model=descriptor_nn`` (WKS nearest neighbours: a rough map)
@@ -29,7 +29,6 @@ pair, peak memory). Writes ``benchmarks/results/smooth_shells_evaluate.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
@@ -47,7 +46,7 @@ EXTRA_KEYS = ("peak_memory_mb", "n_pairs", "median_seconds_per_pair", "mean_geod
 RUNS = {
     "smooth_shells_norigid": ["model=smooth_shells", "model.no_rigid=true"],
     "smooth_shells_published": ["model=smooth_shells"],
-    "smooth_shells_features": ["model=smooth_shells", "model.rigid_feature_score=0.3"],
+    "smooth_shells_features": ["model=smooth_shells", "model.score_descriptors=0.3"],
     "deep_shells": ["model=deep_shells_published"],
     "deep_shells_refined": ["model=deep_shells_published", "postprocess=smooth_shells"],
     "descriptor_nn": ["model=descriptor_nn"],
@@ -77,13 +76,6 @@ def eval_command(name: str, out: Path, faust_r: str, max_pairs: int, weights: st
     return [sys.executable, "evaluate.py", *args, "data=faust_r", f"data.root={faust_r}", *common]
 
 
-def collect(folder: Path) -> dict:
-    record = read_metrics(folder)
-    metrics = json.loads((folder / "metrics.json").read_text())
-    record.update({k: metrics[k] for k in EXTRA_KEYS if k in metrics})
-    return record
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--faust-r", default=os.environ.get("SHAPECORR_FAUST_R"),
@@ -107,7 +99,7 @@ def main(argv=None) -> int:
             bench_common.run_command(eval_command(name, folder, args.faust_r, args.max_pairs,
                                                   args.deep_shells_weights), args.threads, REPO)
         if (folder / "metrics.json").is_file():
-            results[name] = collect(folder)
+            results[name] = read_metrics(folder, EXTRA_KEYS)
             print(f"{name}: mean geodesic error {100 * results[name]['mean_geodesic_error']:.2f} (x100), "
                   f"{results[name].get('seconds_per_pair', float('nan')):.1f} s/pair", flush=True)
     summary = {"run_dir": str(run_dir), "max_pairs": args.max_pairs, "threads": args.threads, "runs": results,

@@ -93,15 +93,19 @@ def learning_curve(scalars: dict, per_step: int) -> dict:
     return {"validation": val, "train_loss": train, "pairs_per_optimizer_step": per_step}
 
 
-def read_metrics(folder: Path | None) -> dict | None:
-    """Selected numbers of an evaluate.py ``metrics.json`` (None when no folder is given)."""
+def read_metrics(folder: Path | None, extra_keys: tuple[str, ...] = ()) -> dict | None:
+    """Selected numbers of an evaluate.py ``metrics.json`` (None when no folder is given).
+
+    ``extra_keys``: more keys, looked up at the top level and in its ``multi_shape`` section (cycle consistency).
+    """
     if folder is None:
         return None
     path = Path(folder) / "metrics.json"
     if not path.is_file():
         raise SystemExit(f"{path}: not found (did the evaluation finish?)")
     metrics = json.loads(path.read_text())
-    out = {k: metrics[k] for k in METRIC_KEYS if k in metrics}
+    flat = {**metrics.get("multi_shape", {}), **metrics}
+    out = {k: flat[k] for k in (*METRIC_KEYS, *extra_keys) if k in flat}
     out["metrics_file"] = str(path)
     return out
 
