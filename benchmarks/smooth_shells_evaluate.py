@@ -1,7 +1,7 @@
 """Benchmark: Smooth Shells through evaluate.py on the FAUST_r test split, alone and as post-processing.
 
     python benchmarks/smooth_shells_evaluate.py --faust-r DIR [--max-pairs 40] [--runs NAME ...]
-        [--run-dir DIR] [--deep-shells-weights FILE] [--threads 1] [--out FILE]
+        [--run-dir DIR] [--deep-shells-weights FILE] [--threads 1] [--workers 0] [--out FILE]
 
 Each run is one ``evaluate.py`` call (a subprocess with ``OMP_NUM_THREADS=--threads``) on the same evenly spaced
 ``--max-pairs`` of the 380 ordered pairs of shapes 080-099 (``max_pairs``; all 380 with ``--max-pairs 0``), into
@@ -59,9 +59,10 @@ INTERCLASS_PAIRS = (("human_s06_p00", "quad_s03_p00"), ("human_s07_p02", "quad_s
                     ("quad_s03_p04", "human_s06_p04"), ("quad_s03_p01", "human_s07_p01"))
 
 
-def eval_command(name: str, out: Path, faust_r: str, max_pairs: int, weights: str | None) -> list[str]:
+def eval_command(name: str, out: Path, faust_r: str, max_pairs: int, weights: str | None,
+                 workers: int = 0) -> list[str]:
     args = list(RUNS[name])
-    common = [f"output_dir={out}", f"hydra.run.dir={out}", "progress=false", "n_examples=4"]
+    common = [f"output_dir={out}", f"hydra.run.dir={out}", "progress=false", "n_examples=4", f"workers={workers}"]
     if name.startswith("interclass"):
         pair_file = out.parent / "interclass_pairs.txt"
         pair_file.parent.mkdir(parents=True, exist_ok=True)
@@ -86,6 +87,9 @@ def main(argv=None) -> int:
     parser.add_argument("--deep-shells-weights", default=os.environ.get("SHAPECORR_DEEP_SHELLS_WEIGHTS"),
                         help="the authors' released Deep Shells weights (default: $SHAPECORR_DEEP_SHELLS_WEIGHTS)")
     parser.add_argument("--threads", type=int, default=1, help="OMP_NUM_THREADS of the runs")
+    parser.add_argument("--workers", type=int, default=0,
+                        help="evaluate.py worker processes (pairs in parallel, each with --threads threads); an "
+                             "interrupted run may resume with another count")
     parser.add_argument("--collect-only", action="store_true", help="only collect the runs already finished")
     parser.add_argument("--out", default=str(RESULT))
     args = parser.parse_args(argv)
@@ -97,7 +101,7 @@ def main(argv=None) -> int:
         folder = run_dir / name
         if not args.collect_only and not (folder / "metrics.json").is_file():
             bench_common.run_command(eval_command(name, folder, args.faust_r, args.max_pairs,
-                                                  args.deep_shells_weights), args.threads, REPO)
+                                                  args.deep_shells_weights, args.workers), args.threads, REPO)
         if (folder / "metrics.json").is_file():
             results[name] = read_metrics(folder, EXTRA_KEYS)
             print(f"{name}: mean geodesic error {100 * results[name]['mean_geodesic_error']:.2f} (x100), "

@@ -142,9 +142,20 @@ def test_k_out_of_range_raises(unit_sphere):
     assert evecs.shape == (len(v), len(v) - 1)
 
 
-def test_sliced_solver_matches_dense_with_multiplicities(unit_sphere):
+@pytest.mark.parametrize("ordering", ["mmd", "colamd"])
+def test_sliced_solver_matches_dense_with_multiplicities(unit_sphere, ordering, monkeypatch):
     """Small slices on the sphere (groups of 2l+1 close eigenvalues, split by the icosahedral symmetry into
-    exact clusters of up to 5) must neither lose nor repeat any eigenvalue."""
+    exact clusters of up to 5) must neither lose nor repeat any eigenvalue, with either fill-reducing ordering
+    of the LDL^T (COLAMD is what meshes above ``LDLT_MMD_MAX_N`` vertices get; its inertia count must hold)."""
+    if ordering == "colamd":
+        monkeypatch.setattr(lap, "LDLT_MMD_MAX_N", 0)
+    used, splu = set(), lap.sla.splu
+
+    def recording_splu(*args, **kwargs):
+        used.add(kwargs["permc_spec"])
+        return splu(*args, **kwargs)
+
+    monkeypatch.setattr(lap.sla, "splu", recording_splu)
     v, f = unit_sphere(3)
     L, m = laplacian(v, f)
     s = 1.0 / np.sqrt(m)
@@ -155,6 +166,7 @@ def test_sliced_solver_matches_dense_with_multiplicities(unit_sphere):
     np.testing.assert_allclose(evals, dense, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(evecs.T @ evecs, np.eye(k), atol=1e-8)
     assert lap._max_residual(A, evals, evecs) < 1e-8 * A.diagonal().mean()
+    assert used == {"MMD_AT_PLUS_A" if ordering == "mmd" else "COLAMD"}
 
 
 def test_robust_method_close_to_cotan_on_good_mesh(smooth_bumpy_sphere):
