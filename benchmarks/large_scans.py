@@ -1,12 +1,14 @@
 """Benchmark: evaluate.py on large scans (issue 17): a ~50k-vertex and a ~150k-vertex pair.
 
     python benchmarks/large_scans.py --faust-r /path/to/FAUST_r [--targets 50000 150000] [--n-ref 200]
+        [--models descriptor_nn deep_shells] [--deep-shells-weights FILE] [--out FILE]
 
 Two FAUST_r shapes (tr_reg_080, tr_reg_081) are refined with ``trimesh.remesh.subdivide_to_size`` to about
 ``--targets`` vertices (the original vertices stay first, so the ``.vts`` ground truth stays valid). Their
 ground truth is cut to the first ``--n-ref`` reference points (entry r is the same point on every shape, so a
 prefix is a valid smaller ground truth; the full 5000 points would cost 5000 heat solves per shape, see
-``seconds_per_source`` to extrapolate). For each size, ``evaluate.py model=descriptor_nn`` runs on the pair
+``seconds_per_source`` to extrapolate). For each size and each of ``--models`` (``descriptor_nn``; ``deep_shells``:
+the authors' released weights), ``evaluate.py`` runs on the pair
 (both directions) in a fresh process with a fresh cache, with ``--n-eig`` eigenpairs (WKS on min(200, n_eig) of
 them; the eigensolve, not the geodesics, dominates at this size: 42 s for 50 eigenpairs at 49k vertices);
 recorded: wall time, peak RSS of that process tree
@@ -75,8 +77,22 @@ def run_prepare(root: Path, cache: Path, out: Path, n_eig: int) -> dict:
     return _measure(cmd, cache, out)
 
 
-def run_evaluate(root: Path, cache: Path, out: Path, n_eig: int) -> dict:
-    cmd = [sys.executable, str(REPO / "evaluate.py"), "model=descriptor_nn", "data=folder", f"data.root={root}",
+#: evaluate.py arguments of each ``--models`` entry (Deep Shells: the authors' released weights, which raise
+#: the eigenpairs to the 500 of its refinement whatever ``--n-eig`` says).
+MODELS = {
+    "descriptor_nn": ["model=descriptor_nn"],
+    "deep_shells": ["model=deep_shells_published"],
+}
+
+
+def run_evaluate(root: Path, cache: Path, out: Path, n_eig: int, model: str = "descriptor_nn",
+                 weights: str | None = None) -> dict:
+    args = list(MODELS[model])
+    if model == "deep_shells":
+        if not weights:
+            sys.exit("--models deep_shells needs --deep-shells-weights FILE or $SHAPECORR_DEEP_SHELLS_WEIGHTS")
+        args.append(f"model.pretrained={weights}")
+    cmd = [sys.executable, str(REPO / "evaluate.py"), *args, "data=folder", f"data.root={root}",
            f"paths.cache_dir={cache}", f"output_dir={out}", "n_examples=0", "progress=false", "workers=0",
            f"data.operators.n_eig={n_eig}",
            "hydra.run.dir=" + str(out / "hydra")]
@@ -95,6 +111,7 @@ def _measure(cmd: list[str], cache: Path, out: Path) -> dict:
         entries.setdefault(f.parent.name, []).append(f.stat().st_size / 2**20)
     metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").is_file() else {}
     return {
+        "seconds_per_pair": metrics.get("seconds_per_pair"),
         "command": " ".join(cmd[1:]),
         "exit_status": os.waitstatus_to_exitcode(status),
         "wall_seconds": wall,
@@ -103,6 +120,11 @@ def _measure(cmd: list[str], cache: Path, out: Path) -> dict:
         "mean_geodesic_error": metrics.get("mean_geodesic_error"),
         "output_tail": output[-1500:],
     }
+
+
+def _run_key(run: dict) -> tuple:
+    """What a result replaces: the earlier run of the same size, mode and model."""
+    return run["target_vertices"], run.get("mode", "evaluate"), run.get("model", "descriptor_nn")
 
 
 def main() -> None:
@@ -114,34 +136,44 @@ def main() -> None:
                         help="run data_prep/prepare.py geodesics=heat instead of evaluate.py (no matcher)")
     parser.add_argument("--n-eig", type=int, default=50,
                         help="eigenpairs (WKS uses min(200, n_eig)); 200 takes minutes per shape at 50k vertices")
+    parser.add_argument("--models", nargs="+", default=["descriptor_nn"], choices=list(MODELS),
+                        help="evaluate.py runs per size, each in a fresh process with a fresh cache")
+    parser.add_argument("--deep-shells-weights", default=os.environ.get("SHAPECORR_DEEP_SHELLS_WEIGHTS"),
+                        help="the authors' released Deep Shells weights (default: $SHAPECORR_DEEP_SHELLS_WEIGHTS)")
+    parser.add_argument("--out", default=str(RESULT), help="result file (runs of other sizes/models are kept)")
     args = parser.parse_args()
     if not args.faust_r:
         sys.exit("give --faust-r DIR or set SHAPECORR_FAUST_R")
     sys.path.insert(0, str(REPO))
     runs = []
     for target in args.targets:
-        with tempfile.TemporaryDirectory(prefix="shapecorr_large_") as tmp:
-            tmp = Path(tmp)
-            counts = make_folder(tmp / "data", Path(args.faust_r), target, args.n_ref)
-            run = run_prepare if args.prepare_only else run_evaluate
-            result = run(tmp / "data", tmp / "cache", tmp / "out", args.n_eig)
-            result.update({"mode": "prepare" if args.prepare_only else "evaluate", "target_vertices": target,
-                           "n_verts": counts, "n_ref": args.n_ref, "n_eig": args.n_eig,
-                           "rows_mb_at_5000_refs": [4 * 5000 * n / 2**20 for n in counts]})
-            runs.append(result)
-            print(json.dumps({k: v for k, v in result.items() if k != "output_tail"}, indent=1), flush=True)
+        for model in ["prepare"] if args.prepare_only else args.models:
+            with tempfile.TemporaryDirectory(prefix="shapecorr_large_") as tmp:
+                tmp = Path(tmp)
+                counts = make_folder(tmp / "data", Path(args.faust_r), target, args.n_ref)
+                if args.prepare_only:
+                    result = run_prepare(tmp / "data", tmp / "cache", tmp / "out", args.n_eig)
+                else:
+                    result = run_evaluate(tmp / "data", tmp / "cache", tmp / "out", args.n_eig, model,
+                                          args.deep_shells_weights)
+                result.update({"mode": "prepare" if args.prepare_only else "evaluate", "model": model,
+                               "target_vertices": target, "n_verts": counts, "n_ref": args.n_ref,
+                               "n_eig": args.n_eig, "rows_mb_at_5000_refs": [4 * 5000 * n / 2**20 for n in counts]})
+                runs.append(result)
+                print(json.dumps({k: v for k, v in result.items() if k != "output_tail"}, indent=1), flush=True)
     out = {
         "command": " ".join([Path(sys.argv[0]).name] + sys.argv[1:]),
         "date": datetime.datetime.now().isoformat(timespec="seconds"),
         "machine": bench_common.machine_info(),
         "runs": runs,
     }
-    RESULT.parent.mkdir(parents=True, exist_ok=True)
-    if RESULT.is_file():  # keep the runs of other sizes measured separately
-        previous = json.loads(RESULT.read_text()).get("runs", [])
-        done = {(r["target_vertices"], r.get("mode", "evaluate")) for r in runs}
-        out["runs"] = [r for r in previous if (r["target_vertices"], r.get("mode", "evaluate")) not in done] + runs
-    RESULT.write_text(json.dumps(out, indent=1) + "\n")
+    result_file = Path(args.out)
+    result_file.parent.mkdir(parents=True, exist_ok=True)
+    if result_file.is_file():  # keep the runs of other sizes measured separately
+        previous = json.loads(result_file.read_text()).get("runs", [])
+        done = {_run_key(r) for r in runs}
+        out["runs"] = [r for r in previous if _run_key(r) not in done] + runs
+    result_file.write_text(json.dumps(out, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -145,6 +145,9 @@ class ShapePairDataModule(pl.LightningDataModule):
         Seed of the training-pair shuffling generator (reproducible epochs).
     validation
         :class:`~shapecorr.data.validation.ValidationOptions` fields (``data.validation.*``).
+    reference_points
+        At most this many ground-truth points per shape (evenly spaced entries of the ``.vts`` files; None: all),
+        see :class:`~shapecorr.data.datasets.ShapeDataset`.
     """
 
     def __init__(
@@ -160,6 +163,7 @@ class ShapePairDataModule(pl.LightningDataModule):
         synthetic: Mapping | None = None,
         shuffle_seed: int = 0,
         validation: Mapping | None = None,
+        reference_points: int | None = None,
     ):
         super().__init__()
         self.root = Path(os.path.expanduser(str(root)))
@@ -176,6 +180,7 @@ class ShapePairDataModule(pl.LightningDataModule):
         self.normalization = _dataclass_from(Normalization, normalization)
         self.operators = OperatorConfig.from_options(operators)
         self.validation = _dataclass_from(ValidationOptions, validation)
+        self.reference_points = reference_points
         self.cache_dir = cache_dir
         self.num_workers = num_workers
         self.prepare_workers = prepare_workers
@@ -234,6 +239,7 @@ class ShapePairDataModule(pl.LightningDataModule):
                 operators=self.operators,
                 cache_dir=self.cache_dir,
                 validation=self.validation,
+                reference_points=self.reference_points,
                 **self.split_selectors.get(split, {}),
             )
         return self._shapes[split]

@@ -426,6 +426,17 @@ def _prepare_one(args) -> str:
     return shape.name
 
 
+def reference_subset(n_points: int, max_points: int) -> np.ndarray:
+    """Indices ``(min(n_points, max_points),) int64`` of evenly spaced ground-truth entries, first and last kept.
+
+    A function of the two counts only, so every ``.vts`` file of a folder (one length) keeps the same template
+    points and stays a valid ground truth.
+    """
+    if max_points >= n_points:
+        return np.arange(n_points, dtype=np.int64)
+    return np.unique(np.round(np.linspace(0, n_points - 1, max_points)).astype(np.int64))
+
+
 class ShapeDataset(Dataset):
     """The shapes of a FAUST/SCAPE-style folder (see module docstring).
 
@@ -446,6 +457,10 @@ class ShapeDataset(Dataset):
         Raise if a shape has no ``corres/<name>.vts``.
     validation
         Mesh-check relaxations (``data.validation.*``, :class:`~shapecorr.data.validation.ValidationOptions`).
+    reference_points
+        Keep at most this many ground-truth points: the same evenly spaced entries of every ``.vts`` and
+        ``.sym.vts`` (all have one length, entry r being one template point; see :func:`reference_subset`).
+        For large scans, whose evaluation costs one geodesic row of ``n`` floats per point. None: all.
     """
 
     def __init__(
@@ -460,9 +475,14 @@ class ShapeDataset(Dataset):
         cache_dir: str | os.PathLike | None = None,
         require_corres: bool = False,
         validation: ValidationOptions | None = None,
+        reference_points: int | None = None,
     ):
         self.root = Path(root)
         self.validation = ValidationOptions() if validation is None else validation
+        if reference_points is not None and (isinstance(reference_points, bool) or int(reference_points) < 1):
+            raise ConfigError(f"data.reference_points must be a positive number of points or null (all), "
+                              f"got {reference_points!r}")
+        self.reference_points = None if reference_points is None else int(reference_points)
         self.split = split
         files = find_mesh_files(self.root)
         self.names = select_names(list(files), self.root, split, names, index_range, split_file)
@@ -520,11 +540,13 @@ class ShapeDataset(Dataset):
                                      corres_sym=self._read_corres(self._sym_paths[shape.name], shape),
                                      fallback=self.validation.laplacian_fallback)
 
-    @staticmethod
-    def _read_corres(path: Path | None, shape: Shape) -> torch.Tensor | None:
+    def _read_corres(self, path: Path | None, shape: Shape) -> torch.Tensor | None:
         if path is None:
             return None
-        return torch.from_numpy(read_vts(path, n_verts=shape.n_verts))
+        corres = read_vts(path, n_verts=shape.n_verts)
+        if self.reference_points is not None:
+            corres = corres[reference_subset(len(corres), self.reference_points)]
+        return torch.from_numpy(corres)
 
     def geodesics(self, i: int, method: str = "heat") -> np.ndarray:
         """All-pairs geodesic distances ``(n, n)`` float32 of shape ``i`` (normalized units), cached."""
@@ -582,8 +604,8 @@ class ShapeDataset(Dataset):
         biggest = self.names[int(np.argmax(estimates))] if estimates else ""
         workers = workers_for_memory(
             estimates, num_workers, f"preparing shape {biggest!r} of {self.root}",
-            "free memory, lower the eigenpairs (data.operators.n_eig), give it fewer ground-truth points, or "
-            "evaluate it at a working resolution (e.g. remesh it first)")
+            "free memory, lower the eigenpairs (data.operators.n_eig), use fewer ground-truth points "
+            "(data.reference_points=N), or evaluate it at a working resolution (e.g. remesh it first)")
         desc = f"preparing {self.root.name}" + (f" [{self.split}]" if self.split else "")
         if workers <= 1:
             for job in tqdm(jobs, desc=desc, unit="shape", disable=not progress):

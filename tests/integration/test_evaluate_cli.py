@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 
 from shapecorr.cli.evaluate import evaluate
 from shapecorr.data.io import write_mesh, write_vts
+from shapecorr.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
 NAMES = [f"blob_{k:02d}" for k in range(4)]
@@ -109,6 +110,36 @@ def test_maps_dir_mode_reproduces_errors(tiny, tmp_path):
     options = [f"maps_dir={one_based}", "maps_extension=map", "maps_one_based=true", "n_examples=0"]
     third = evaluate(_cfg(tiny, tmp_path / "eval3", *options))
     assert third["mean_geodesic_error"] == first["mean_geodesic_error"]
+
+
+def test_reference_points_evaluates_an_even_subset(tiny, tmp_path):
+    """``data.reference_points=50`` scores 50 of the 200 ground-truth points of every pair (the same entries of
+    both files, so the identity ground truth stays exact) and caches geodesic rows from those points only."""
+    from shapecorr.data.datasets import ShapeDataset, reference_subset
+
+    keep = reference_subset(N_REF, 50)
+    assert len(keep) == 50 and keep[0] == 0 and keep[-1] == N_REF - 1 and np.all(np.diff(keep) >= 3)
+    assert np.array_equal(reference_subset(N_REF, 500), np.arange(N_REF))
+    exact = evaluate(_cfg(tiny, tmp_path / "gt", "model=identity_gt", "data.reference_points=50", "n_examples=0"))
+    assert exact["n_points"] == 50 * N_PAIRS and exact["mean_geodesic_error"] == 0.0
+    root, cache, _ = tiny
+    wrong = tmp_path / "wrong"
+    wrong.mkdir()
+    for a in NAMES:
+        for b in NAMES:
+            if a != b:
+                np.savetxt(wrong / f"{a}__{b}.txt", (np.arange(642) * 7) % 642, fmt="%d")
+    both = [evaluate(_cfg(tiny, tmp_path / f"wrong_{n}", f"maps_dir={wrong}", f"data.reference_points={n}",
+                          "n_examples=0")) for n in ("null", 50)]
+    assert both[0]["n_points"] == N_REF * N_PAIRS and both[1]["n_points"] == 50 * N_PAIRS
+    assert both[1]["mean_geodesic_error"] != both[0]["mean_geodesic_error"]
+    assert both[1]["mean_geodesic_error"] == pytest.approx(both[0]["mean_geodesic_error"], rel=0.3)
+    shapes = ShapeDataset(root, cache_dir=cache, reference_points=50)
+    full = ShapeDataset(root, cache_dir=cache)
+    assert set(shapes.geodesic_sources(0)) < set(full.geodesic_sources(0))
+    assert len(shapes.geodesic_sources(0)) <= 100  # 50 points of the .vts and 50 of the .sym.vts
+    with pytest.raises(ConfigError, match="data.reference_points"):
+        ShapeDataset(root, cache_dir=cache, reference_points=0)
 
 
 def test_descriptor_nn_in_parallel_workers(tiny, tmp_path):
