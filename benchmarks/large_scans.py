@@ -4,15 +4,14 @@
         [--models descriptor_nn deep_shells] [--deep-shells-weights FILE] [--out FILE]
 
 Two FAUST_r shapes (tr_reg_080, tr_reg_081) are refined with ``trimesh.remesh.subdivide_to_size`` to about
-``--targets`` vertices (the original vertices stay first, so the ``.vts`` ground truth stays valid). Their
-ground truth is cut to the first ``--n-ref`` reference points (entry r is the same point on every shape, so a
-prefix is a valid smaller ground truth; the full 5000 points would cost 5000 heat solves per shape, see
-``seconds_per_source`` to extrapolate). For each size and each of ``--models`` (``descriptor_nn``; ``deep_shells``:
-the authors' released weights), ``evaluate.py`` runs on the pair
+``--targets`` vertices (the original vertices stay first, so the ``.vts`` ground truth stays valid). They are
+evaluated on ``--n-ref`` of their 5000 ground-truth points (``data.reference_points``: evenly spaced entries; all
+5000 would cost 5000 heat solves and 2.8 GB of geodesic rows per 150k shape). For each size and each of
+``--models`` (``descriptor_nn``; ``deep_shells``: the authors' released weights), ``evaluate.py`` runs on the pair
 (both directions) in a fresh process with a fresh cache, with ``--n-eig`` eigenpairs (WKS on min(200, n_eig) of
-them; the eigensolve, not the geodesics, dominates at this size: 42 s for 50 eigenpairs at 49k vertices);
-recorded: wall time, peak RSS of that process tree
-(``wait4``), the size of every cache entry, the mean error. Writes ``benchmarks/results/large_scans.json``.
+them); recorded: wall time, peak RSS of that process tree (``wait4``), the size of every cache entry, the mean
+error, seconds per pair. Writes ``benchmarks/results/large_scans.json`` (``--out``), keeping the runs of other
+sizes and models in it.
 """
 
 from __future__ import annotations
@@ -51,7 +50,7 @@ def refine(verts, faces, target: int):
     return v, f
 
 
-def make_folder(root: Path, faust_r: Path, target: int, n_ref: int) -> list[int]:
+def make_folder(root: Path, faust_r: Path, target: int) -> list[int]:
     from shapecorr.data.io import read_mesh, read_vts, write_mesh, write_vts
 
     for sub in ("off", "corres", "splits"):
@@ -61,18 +60,19 @@ def make_folder(root: Path, faust_r: Path, target: int, n_ref: int) -> list[int]
         v, f = read_mesh(faust_r / "off" / f"{name}.off")
         v2, f2 = refine(v, f, target)
         write_mesh(root / "off" / f"{name}.off", v2, f2)
-        write_vts(root / "corres" / f"{name}.vts", read_vts(faust_r / "corres" / f"{name}.vts")[:n_ref])
+        write_vts(root / "corres" / f"{name}.vts", read_vts(faust_r / "corres" / f"{name}.vts"))
         counts.append(len(v2))
     for split in ("train", "test"):
         (root / "splits" / f"{split}.txt").write_text("\n".join(SHAPES) + "\n")
     return counts
 
 
-def run_prepare(root: Path, cache: Path, out: Path, n_eig: int) -> dict:
+def run_prepare(root: Path, cache: Path, out: Path, n_eig: int, n_ref: int) -> dict:
     """``data_prep/prepare.py geodesics=heat`` alone: mesh checks, eigenbasis and the ground-truth geodesic rows
     (what evaluation adds to a matcher), for sizes where the matcher itself does not fit the time budget."""
     cmd = [sys.executable, str(REPO / "data_prep" / "prepare.py"), "data=folder", f"data.root={root}",
-           f"paths.cache_dir={cache}", "geodesics=heat", f"data.operators.n_eig={n_eig}", "workers=2",
+           f"paths.cache_dir={cache}", "geodesics=heat", f"data.operators.n_eig={n_eig}",
+           f"data.reference_points={n_ref}", "workers=2",
            "hydra.run.dir=" + str(out / "hydra")]
     return _measure(cmd, cache, out)
 
@@ -85,7 +85,7 @@ MODELS = {
 }
 
 
-def run_evaluate(root: Path, cache: Path, out: Path, n_eig: int, model: str = "descriptor_nn",
+def run_evaluate(root: Path, cache: Path, out: Path, n_eig: int, n_ref: int, model: str = "descriptor_nn",
                  weights: str | None = None) -> dict:
     args = list(MODELS[model])
     if model == "deep_shells":
@@ -94,7 +94,7 @@ def run_evaluate(root: Path, cache: Path, out: Path, n_eig: int, model: str = "d
         args.append(f"model.pretrained={weights}")
     cmd = [sys.executable, str(REPO / "evaluate.py"), *args, "data=folder", f"data.root={root}",
            f"paths.cache_dir={cache}", f"output_dir={out}", "n_examples=0", "progress=false", "workers=0",
-           f"data.operators.n_eig={n_eig}",
+           f"data.operators.n_eig={n_eig}", f"data.reference_points={n_ref}",
            "hydra.run.dir=" + str(out / "hydra")]
     return _measure(cmd, cache, out)
 
@@ -131,7 +131,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--faust-r", default=os.environ.get("SHAPECORR_FAUST_R"))
     parser.add_argument("--targets", type=int, nargs="+", default=[50000, 150000])
-    parser.add_argument("--n-ref", type=int, default=200)
+    parser.add_argument("--n-ref", type=int, default=200, help="ground-truth points evaluated (data.reference_points)")
     parser.add_argument("--prepare-only", action="store_true",
                         help="run data_prep/prepare.py geodesics=heat instead of evaluate.py (no matcher)")
     parser.add_argument("--n-eig", type=int, default=50,
@@ -150,12 +150,12 @@ def main() -> None:
         for model in ["prepare"] if args.prepare_only else args.models:
             with tempfile.TemporaryDirectory(prefix="shapecorr_large_") as tmp:
                 tmp = Path(tmp)
-                counts = make_folder(tmp / "data", Path(args.faust_r), target, args.n_ref)
+                counts = make_folder(tmp / "data", Path(args.faust_r), target)
                 if args.prepare_only:
-                    result = run_prepare(tmp / "data", tmp / "cache", tmp / "out", args.n_eig)
+                    result = run_prepare(tmp / "data", tmp / "cache", tmp / "out", args.n_eig, args.n_ref)
                 else:
-                    result = run_evaluate(tmp / "data", tmp / "cache", tmp / "out", args.n_eig, model,
-                                          args.deep_shells_weights)
+                    result = run_evaluate(tmp / "data", tmp / "cache", tmp / "out", args.n_eig, args.n_ref,
+                                          model, args.deep_shells_weights)
                 result.update({"mode": "prepare" if args.prepare_only else "evaluate", "model": model,
                                "target_vertices": target, "n_verts": counts, "n_ref": args.n_ref,
                                "n_eig": args.n_eig, "rows_mb_at_5000_refs": [4 * 5000 * n / 2**20 for n in counts]})
