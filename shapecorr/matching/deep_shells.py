@@ -98,6 +98,9 @@ DEFAULT_NUM_SAMPLES = 2000
 #: test_model ``max_vert``: larger shapes are farthest-point subsampled to this many points for the OT part.
 DEFAULT_MAX_QUERY_POINTS = 6000
 
+#: Rows per block of the refinement's float64 products ``Phi^T (w Phi)`` of float32 bases: larger shapes are
+#: summed over row blocks, so no float64 copy of a whole (n, k) basis exists (meshes up to this size: one block).
+REFINE_ROW_BLOCK = 32768
 _SHELL_MODES = ("sigmoid", "hard")
 _NORMAL_NORMS = ("all", "samples")
 _SINKHORN_IMPLS = ("fast", "reference")
@@ -568,6 +571,24 @@ def deformation_from_pairs(
     return sol[:, :k], sol[:, k:]
 
 
+def _blocked_gram(a: torch.Tensor, b: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """``a^T diag(weights) b`` in float64, summed over blocks of ``REFINE_ROW_BLOCK`` rows.
+
+    a : (n, p) float, b : (n, q) float, weights : (n,) float or None -> (p, q) float64. Each block is converted
+    to float64 when used (exact), so only ``REFINE_ROW_BLOCK`` rows exist in float64 at a time.
+    """
+    f64 = torch.float64
+    out = None
+    for start in range(0, a.shape[0], REFINE_ROW_BLOCK):
+        rows = slice(start, start + REFINE_ROW_BLOCK)
+        right = b[rows].to(f64)
+        if weights is not None:
+            right = weights[rows, None].to(f64) * right
+        part = a[rows].to(f64).transpose(0, 1) @ right
+        out = part if out is None else out.add_(part)
+    return out
+
+
 class _PairNormalEquations:
     """The normal equations of :func:`deformation_from_pairs`, carried from one refinement level to the next.
 
@@ -576,43 +597,50 @@ class _PairNormalEquations:
     large ``k``, the pairs of only a few percent of the vertices change, so the previous matrices are updated
     on the rows whose pairs changed and extended by the new columns; a full rebuild is used when that is not
     cheaper. The deformation part of the right-hand side (3 columns, shells change with ``k``) is rebuilt.
-    Everything is float64 (buffers sized for the largest ``k``); the result equals
+    Everything is computed in float64 (buffers sized for the largest ``k``); the result equals
     :func:`deformation_from_pairs` up to rounding (~1e-14 relative; in the float32 the solution is used in,
-    a few entries differ by one unit in the last place).
+    a few entries differ by one unit in the last place). The bases are kept in their own dtype and the blocks
+    a product needs are converted when used (exact), so float32 bases are not copied to float64 whole
+    (1.2 GB for two 150k-vertex shapes with 500 eigenfunctions).
     """
 
     def __init__(self, phi_x: torch.Tensor, phi_y: torch.Tensor):
-        self.phi_x, self.phi_y = phi_x, phi_y  # (n_x, K), (n_y, K) float64
+        self.phi_x, self.phi_y = phi_x, phi_y  # (n_x, K), (n_y, K) float (float32 or float64)
         n, kmax = phi_x.shape
         self.k = 0
         self.map_x_to_y = self.map_y_to_x = self.weights = None
-        self.target = phi_x.new_empty(n, kmax)  # T_C, columns :k valid
-        self.gram = phi_x.new_empty(kmax, kmax)  # [:k, :k] valid
-        self.rhs = phi_x.new_empty(kmax, kmax)
+        f64 = dict(dtype=torch.float64, device=phi_x.device)
+        self.target = torch.empty(n, kmax, **f64)  # T_C, columns :k valid
+        self.gram = torch.empty(kmax, kmax, **f64)  # [:k, :k] valid
+        self.rhs = torch.empty(kmax, kmax, **f64)
 
     def _fill_target(self, map_x_to_y, map_y_to_x, start, stop):
         """Columns ``start:stop`` of ``T_C``: ``Phi_Y[map_x_to_y] + sum over j with map_y_to_x[j] = i of Phi_Y[j]``."""
-        t = self.phi_y[map_x_to_y, start:stop]
-        self.target[:, start:stop] = t.index_add_(0, map_y_to_x, self.phi_y[:, start:stop])
+        target = self.target[:, start:stop]
+        target.copy_(self.phi_y[map_x_to_y, start:stop])
+        for first in range(0, self.phi_y.shape[0], REFINE_ROW_BLOCK):
+            rows = slice(first, first + REFINE_ROW_BLOCK)
+            target.index_add_(0, map_y_to_x[rows], self.phi_y[rows, start:stop].to(torch.float64))
 
     def _rebuild(self, k, map_x_to_y, map_y_to_x, weights):
         px = self.phi_x[:, :k]
         self._fill_target(map_x_to_y, map_y_to_x, 0, k)
-        self.gram[:k, :k] = px.transpose(0, 1) @ (weights[:, None] * px)
-        self.rhs[:k, :k] = px.transpose(0, 1) @ self.target[:, :k]
+        self.gram[:k, :k] = _blocked_gram(px, px, weights)
+        self.rhs[:k, :k] = _blocked_gram(px, self.target[:, :k])
 
     def _update(self, map_x_to_y, map_y_to_x, weights, rows, changed_x, changed_y):
         """Add the changes of the pairs (all on ``rows``) to ``gram``, ``rhs`` and ``target`` at the current k."""
         k = self.k
         local = torch.full((self.phi_x.shape[0],), -1, dtype=torch.int64, device=rows.device)
         local[rows] = torch.arange(rows.numel(), device=rows.device)
-        delta = self.phi_x.new_zeros(rows.numel(), k)
+        delta = self.target.new_zeros(rows.numel(), k)
         new_y, old_y = map_x_to_y[changed_x], self.map_x_to_y[changed_x]
-        delta.index_add_(0, local[changed_x], self.phi_y[new_y, :k] - self.phi_y[old_y, :k])
-        phi_changed = self.phi_y[changed_y, :k]
+        delta.index_add_(0, local[changed_x], self.phi_y[new_y, :k].to(torch.float64)
+                         - self.phi_y[old_y, :k].to(torch.float64))
+        phi_changed = self.phi_y[changed_y, :k].to(torch.float64)
         delta.index_add_(0, local[map_y_to_x[changed_y]], phi_changed)
         delta.index_add_(0, local[self.map_y_to_x[changed_y]], phi_changed, alpha=-1.0)
-        pr = self.phi_x[rows, :k]
+        pr = self.phi_x[rows, :k].to(torch.float64)
         self.rhs[:k, :k] += pr.transpose(0, 1) @ delta
         self.target[rows, :k] += delta
         dw = weights[rows] - self.weights[rows]
@@ -626,11 +654,11 @@ class _PairNormalEquations:
         kp = self.k
         px, pn = self.phi_x[:, :k], self.phi_x[:, kp:k]
         self._fill_target(map_x_to_y, map_y_to_x, kp, k)
-        cross = px.transpose(0, 1) @ (weights[:, None] * pn)  # (k, k - kp)
+        cross = _blocked_gram(px, pn, weights)  # (k, k - kp)
         self.gram[:k, kp:k] = cross
         self.gram[kp:k, :kp] = cross[:kp].transpose(0, 1)
-        self.rhs[:k, kp:k] = px.transpose(0, 1) @ self.target[:, kp:k]
-        self.rhs[kp:k, :kp] = pn.transpose(0, 1) @ self.target[:, :kp]
+        self.rhs[:k, kp:k] = _blocked_gram(px, self.target[:, kp:k])
+        self.rhs[kp:k, :kp] = _blocked_gram(pn, self.target[:, :kp])
 
     def solve(self, k, shell_x, shell_y, map_x_to_y, map_y_to_x, ridge):
         """:func:`deformation_from_pairs` with ``phi_x[:, :k]``, ``phi_y[:, :k]``: ``(fmap, tau)`` float64."""
@@ -659,7 +687,7 @@ class _PairNormalEquations:
         target_tau = sy[map_x_to_y] - sx
         target_tau.index_add_(0, map_y_to_x, sy)
         target_tau -= extra[:, None] * sx
-        rhs = torch.cat([self.rhs[:k, :k], self.phi_x[:, :k].transpose(0, 1) @ target_tau], 1)
+        rhs = torch.cat([self.rhs[:k, :k], _blocked_gram(self.phi_x[:, :k], target_tau)], 1)
         sol = solve_normal_equations(self.gram[:k, :k], rhs, ridge=ridge,
                                      what=f"Deep Shells refinement solve at k={k}")
         return sol[:, :k], sol[:, k:]
@@ -877,9 +905,8 @@ def refine_deep_shells(
         raise ConfigError("refine_deep_shells: the initial maps must have one entry per vertex of X and of Y")
     incl = config.sigmoid_inclusive
     with torch.no_grad():
-        # float64 copies once (not per level); normal equations carried from level to level
-        system = _PairNormalEquations(shape_x.evecs[:, : max(ks)].to(torch.float64),
-                                      shape_y.evecs[:, : max(ks)].to(torch.float64))
+        # normal equations carried from level to level (float64 products of the bases' blocks)
+        system = _PairNormalEquations(shape_x.evecs[:, : max(ks)], shape_y.evecs[:, : max(ks)])
         for k in ks:
             shell_x = _shell(shape_x, k, config.smooth_x, incl)
             shell_y = _shell(shape_y, k, "sigmoid", incl)
