@@ -10,7 +10,8 @@ Each run is one ``evaluate.py`` call (a subprocess with ``OMP_NUM_THREADS=--thre
 ========================  =================================================================================
 name                      evaluate.py arguments
 ========================  =================================================================================
-smooth_shells_norigid     ``model=smooth_shells model.no_rigid=true`` (FAUST_r is consistently oriented)
+smooth_shells_norigid     ``model=smooth_shells model.no_rigid=true`` (no rigid stage: wrong for FAUST_r, whose
+                          test shapes 088 and 098 are turned ~100 degrees about the vertical axis)
 smooth_shells_published   ``model=smooth_shells`` (the published isometric preset, rigid stage on)
 smooth_shells_features    ``model=smooth_shells model.score_descriptors=0.3`` (descriptors in the scores)
 deep_shells               ``model=deep_shells_published`` (the authors' released weights)

@@ -65,6 +65,8 @@ neighbour pairs (``np.bincount`` accumulation), with no Python loop over vertice
 
 from __future__ import annotations
 
+import itertools
+
 import igl
 import numpy as np
 import torch
@@ -100,6 +102,10 @@ COINCIDENT_REL_TOL = 1e-6
 #: Neighbour pairs processed at once in the histogram step (bounds the memory of the temporaries; not a
 #: published parameter, any value gives the same result).
 PAIR_BLOCK = 1 << 16
+#: Centre vertices whose neighbourhoods are gathered at once (bounds the memory of the neighbour pairs: at
+#: the 5 % radius a 150k-vertex mesh has ~1200 neighbours per vertex, 170 M pairs for the whole mesh, ~10 GB
+#: of temporaries; one block holds ~2.5 M). Not a published parameter: results do not depend on it.
+CENTRE_BLOCK = 2048
 
 _AZIMUTH_SPAN = 2.0 * np.pi / N_AZIMUTH
 _ELEVATION_SPAN = np.pi / N_ELEVATION
@@ -238,8 +244,14 @@ def shot_lrf(
     v, _ = _validate_mesh(verts, np.zeros((0, 3), dtype=np.int64))
     if not (np.isfinite(radius) and radius > 0):
         raise ConfigError(f"SHOT frame radius must be a positive number, got {radius}")
-    i, j, d = _neighbor_pairs(v, radius)
-    return _local_frames(v, i, j, d, radius, squared_distance_weights, min_lrf_neighbors)
+    tree = cKDTree(v)
+    frames, valid = np.zeros((v.shape[0], 3, 3)), np.zeros(v.shape[0], dtype=bool)
+    for lo in range(0, v.shape[0], CENTRE_BLOCK):
+        hi = min(v.shape[0], lo + CENTRE_BLOCK)
+        i, j, d = _neighbor_pairs(tree, v, lo, hi, radius)
+        frames[lo:hi], valid[lo:hi] = _local_frames(v, i, j, d, radius, squared_distance_weights, min_lrf_neighbors,
+                                                    lo, hi - lo)
+    return frames, valid
 
 
 def vertex_normals_for_shot(verts: np.ndarray, faces: np.ndarray, normals="uniform") -> np.ndarray:
@@ -298,19 +310,27 @@ def _shot_core(
     azimuth_wrap: int,
     wrap_cosine: bool,
 ) -> np.ndarray:
-    """SHOT rows for points ``v`` (n, 3) float64 with unit normals ``nrm`` (n, 3); see :func:`shot`."""
-    # All ordered pairs (centre i, neighbour j) within the larger of the two radii, found once.
-    i, j, d = _neighbor_pairs(v, max(radius, lrf_radius))
-    in_lrf = d <= lrf_radius
-    frames, has_frame = _local_frames(
-        v, i[in_lrf], j[in_lrf], d[in_lrf], lrf_radius, squared_lrf_weights, min_lrf_neighbors
-    )
+    """SHOT rows for points ``v`` (n, 3) float64 with unit normals ``nrm`` (n, 3); see :func:`shot`.
 
-    in_support = d <= radius
-    return _histograms(
-        v, nrm, frames, has_frame, i[in_support], j[in_support], d[in_support], radius, n_bins, min_neighbors,
-        azimuth_wrap, wrap_cosine,
-    )
+    Centres are processed in blocks of ``CENTRE_BLOCK`` (a descriptor depends only on its centre's
+    neighbourhood), each from its ordered pairs (centre i, neighbour j) within the larger of the two radii.
+    """
+    n = v.shape[0]
+    tree = cKDTree(v)
+    desc = np.zeros((n, N_SECTORS * (n_bins + 1)), dtype=np.float32)
+    for lo in range(0, n, CENTRE_BLOCK):
+        hi = min(n, lo + CENTRE_BLOCK)
+        i, j, d = _neighbor_pairs(tree, v, lo, hi, max(radius, lrf_radius))
+        in_lrf = d <= lrf_radius
+        frames, has_frame = _local_frames(
+            v, i[in_lrf], j[in_lrf], d[in_lrf], lrf_radius, squared_lrf_weights, min_lrf_neighbors, lo, hi - lo
+        )
+        in_support = d <= radius
+        desc[lo:hi] = _histograms(
+            v, nrm, frames, has_frame, i[in_support], j[in_support], d[in_support], radius, n_bins, min_neighbors,
+            azimuth_wrap, wrap_cosine, lo, hi - lo,
+        )
+    return desc
 
 
 def _histograms(
@@ -326,13 +346,15 @@ def _histograms(
     min_neighbors: int,
     azimuth_wrap: int,
     wrap_cosine: bool,
+    offset: int,
+    n: int,
 ) -> np.ndarray:
-    """Normalized SHOT rows (n, 32 (n_bins + 1)) float32.
+    """Normalized SHOT rows (n, 32 (n_bins + 1)) float32 of the centres ``offset .. offset + n - 1``.
 
-    From the frames (n, 3, 3) and the support pairs (sorted by centre ``i``).
+    From their frames (n, 3, 3) and support pairs (sorted by centre ``i``, global vertex indices).
     """
-    n = v.shape[0]
     length = N_SECTORS * (n_bins + 1)
+    i = i - offset  # local centre indices from here on
     described = has_frame & (np.bincount(i, minlength=n) >= min_neighbors)
     keep = described[i] & (d > COINCIDENT_REL_TOL * radius)
     i, j, d = i[keep], j[keep], d[keep]
@@ -347,7 +369,7 @@ def _histograms(
         block = slice(first_pair[lo], first_pair[hi])
         desc[lo:hi] = _histogram_block(
             v, nrm, frames, i[block], j[block], d[block], lo, hi - lo, radius, n_bins, azimuth_wrap,
-            wrap_cosine,
+            wrap_cosine, offset,
         )
 
     norm = np.linalg.norm(desc, axis=1, keepdims=True)
@@ -370,14 +392,16 @@ def _histogram_block(
     n_bins: int,
     azimuth_wrap: int,
     wrap_cosine: bool,
+    offset: int = 0,
 ) -> np.ndarray:
     """Unnormalized histograms (n_rows, 32 (n_bins + 1)) float64.
 
-    Of the centres first .. first + n_rows - 1, from their pairs (i, j) at distances d.
+    Of the centres first .. first + n_rows - 1 (indices into ``frames``; vertex ``offset + i``), from their pairs
+    (i, j) at distances d (``j``: vertex indices).
     """
     slots = n_bins + 1
     length = N_SECTORS * slots
-    q = v[j] - v[i]
+    q = v[j] - v[offset + i]
     frame = frames[i]  # (m, 3, 3): rows x, y, z
     local = np.einsum("mab,mb->ma", frame, q)
     x, y, z = local[:, 0], local[:, 1] + 0.0, local[:, 2]  # "+ 0.0" turns -0.0 into 0.0 for atan2
@@ -496,20 +520,18 @@ def _total_area(v: np.ndarray, f: np.ndarray) -> float:
     return area
 
 
-def _neighbor_pairs(v: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """All ordered pairs (i, j), i != j, with |v_j - v_i| <= radius, sorted by i.
+def _neighbor_pairs(tree: cKDTree, v: np.ndarray, lo: int, hi: int, radius: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ordered pairs (i, j), ``lo <= i < hi``, ``j != i``, with |v_j - v_i| <= radius: by i, then j.
 
-    Returns
-    -------
-    i, j : (m,) int64
-    d : (m,) float64
-        Distances.
+    ``tree``: ``cKDTree(v)``. Returns ``i, j`` (m,) int64 (vertex indices) and the distances ``d`` (m,) float64.
     """
-    pairs = cKDTree(v).query_pairs(radius, output_type="ndarray")  # i < j only
-    i = np.concatenate([pairs[:, 0], pairs[:, 1]]).astype(np.int64)
-    j = np.concatenate([pairs[:, 1], pairs[:, 0]]).astype(np.int64)
-    order = np.argsort(i, kind="stable")
-    i, j = i[order], j[order]
+    balls = tree.query_ball_point(v[lo:hi], radius, return_sorted=True)
+    counts = np.fromiter((len(b) for b in balls), dtype=np.int64, count=len(balls))
+    j = np.fromiter(itertools.chain.from_iterable(balls), dtype=np.int64, count=int(counts.sum()))
+    i = np.repeat(np.arange(lo, hi, dtype=np.int64), counts)
+    other = j != i
+    i, j = i[other], j[other]
     d = np.linalg.norm(v[j] - v[i], axis=1)
     return i, j, d
 
@@ -522,10 +544,16 @@ def _local_frames(
     radius: float,
     squared_distance_weights: bool,
     min_lrf_neighbors: int,
+    offset: int = 0,
+    n: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Frames from the neighbour pairs (i, j) at distances d (all <= radius); see :func:`shot_lrf`."""
-    n = v.shape[0]
+    """Frames (n, 3, 3) of the centres ``offset .. offset + n - 1`` (default: all vertices).
+
+    From their neighbour pairs (i, j) (vertex indices) at distances d (all <= radius); see :func:`shot_lrf`.
+    """
+    n = v.shape[0] - offset if n is None else n
     q = v[j] - v[i]
+    i = i - offset  # local centre indices from here on
     w = radius - (d * d if squared_distance_weights else d)
     count = np.bincount(i, minlength=n)
     sum_w = np.bincount(i, weights=w, minlength=n)

@@ -102,6 +102,17 @@ def test_pair_blocking_does_not_change_the_result(blob, monkeypatch, block):
     np.testing.assert_array_equal(shot(v, f), expected)
 
 
+@pytest.mark.parametrize("block", [1, 37])
+def test_centre_blocking_does_not_change_the_result(blob, monkeypatch, block):
+    # neighbourhoods are gathered per block of centres (memory on large scans); frames too (shot_lrf)
+    v, f = blob
+    expected, frames = shot(v, f), shot_lrf(v, 0.3)
+    monkeypatch.setattr(shot_module, "CENTRE_BLOCK", block)
+    np.testing.assert_array_equal(shot(v, f), expected)
+    for got, want in zip(shot_lrf(v, 0.3), frames):
+        np.testing.assert_array_equal(got, want)
+
+
 def test_torch_input_gives_tensor(blob):
     v, f = blob
     out = shot(torch.from_numpy(v).float(), torch.from_numpy(f))
