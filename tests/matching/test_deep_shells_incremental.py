@@ -30,8 +30,13 @@ def _perturb(m, n_target, fraction, g):
     return m
 
 
-def test_carried_normal_equations_equal_the_per_level_solve(monkeypatch):
+@pytest.mark.parametrize("row_block, dtype", [(None, torch.float64), (37, torch.float64), (37, torch.float32)])
+def test_carried_normal_equations_equal_the_per_level_solve(monkeypatch, row_block, dtype):
+    """Also with products summed over row blocks (large meshes) and float32 bases (converted per block)."""
+    if row_block is not None:
+        monkeypatch.setattr(ds, "REFINE_ROW_BLOCK", row_block)
     phi_x, phi_y, mxy, myx, g = _problem()
+    phi_x, phi_y = phi_x.to(dtype), phi_y.to(dtype)
     n_x, n_y = phi_x.shape[0], phi_y.shape[0]
     calls = {"_rebuild": 0, "_update": 0, "_extend": 0}
     for name in calls:
@@ -43,6 +48,7 @@ def test_carried_normal_equations_equal_the_per_level_solve(monkeypatch):
 
         monkeypatch.setattr(ds._PairNormalEquations, name, counted)
     system = ds._PairNormalEquations(phi_x, phi_y)
+    assert system.phi_x.dtype == dtype  # the bases are not copied to float64
     # growing k with few changed pairs (update + extension), a repeated k, most pairs changed, unchanged
     # pairs, and a smaller k (rebuild)
     schedule = [(6, 0.0), (6, 0.05), (9, 0.02), (14, 0.01), (20, 0.0), (20, 0.9), (27, 0.0), (33, 0.03),
@@ -52,7 +58,8 @@ def test_carried_normal_equations_equal_the_per_level_solve(monkeypatch):
         shell_x = torch.randn(n_x, 3, generator=g)
         shell_y = torch.randn(n_y, 3, generator=g)
         fmap, tau = system.solve(k, shell_x, shell_y, mxy, myx, 1e-8)
-        ref_fmap, ref_tau = deformation_from_pairs(phi_x[:, :k], phi_y[:, :k], shell_x, shell_y, mxy, myx, 1e-8)
+        ref_fmap, ref_tau = deformation_from_pairs(phi_x[:, :k].double(), phi_y[:, :k].double(), shell_x, shell_y,
+                                                   mxy, myx, 1e-8)
         assert fmap.dtype == torch.float64 and fmap.shape == (k, k) and tau.shape == (k, 3)
         torch.testing.assert_close(fmap, ref_fmap, rtol=0, atol=1e-10 * float(ref_fmap.abs().max()))
         torch.testing.assert_close(tau, ref_tau, rtol=0, atol=1e-10 * float(ref_tau.abs().max()))
