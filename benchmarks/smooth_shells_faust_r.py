@@ -8,8 +8,7 @@ pipeline does (area-weighted centroid, area (2/3)^2), their 509 eigenpairs and S
 shape cache (computed on a miss, not timed), then :func:`shapecorr.axiomatic.smooth_shells.smooth_shells`
 with the published isometric settings is timed. Reported: seconds per pair (wall, process CPU), the peak
 resident memory of the process before and after the matching, and the mean geodesic error (Princeton
-protocol: heat-method geodesics from the ground-truth vertices, divided by sqrt(area of Y)). Stages are
-timed separately (rigid, random search, layered matching) with ``--stages``.
+protocol: heat-method geodesics from the ground-truth vertices, divided by sqrt(area of Y)).
 """
 
 from __future__ import annotations
