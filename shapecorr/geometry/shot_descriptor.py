@@ -244,11 +244,8 @@ def shot_lrf(
     v, _ = _validate_mesh(verts, np.zeros((0, 3), dtype=np.int64))
     if not (np.isfinite(radius) and radius > 0):
         raise ConfigError(f"SHOT frame radius must be a positive number, got {radius}")
-    tree = cKDTree(v)
     frames, valid = np.zeros((v.shape[0], 3, 3)), np.zeros(v.shape[0], dtype=bool)
-    for lo in range(0, v.shape[0], CENTRE_BLOCK):
-        hi = min(v.shape[0], lo + CENTRE_BLOCK)
-        i, j, d = _neighbor_pairs(tree, v, lo, hi, radius)
+    for lo, hi, i, j, d in _neighbourhood_blocks(v, radius):
         frames[lo:hi], valid[lo:hi] = _local_frames(v, i, j, d, radius, squared_distance_weights, min_lrf_neighbors,
                                                     lo, hi - lo)
     return frames, valid
@@ -315,12 +312,8 @@ def _shot_core(
     Centres are processed in blocks of ``CENTRE_BLOCK`` (a descriptor depends only on its centre's
     neighbourhood), each from its ordered pairs (centre i, neighbour j) within the larger of the two radii.
     """
-    n = v.shape[0]
-    tree = cKDTree(v)
-    desc = np.zeros((n, N_SECTORS * (n_bins + 1)), dtype=np.float32)
-    for lo in range(0, n, CENTRE_BLOCK):
-        hi = min(n, lo + CENTRE_BLOCK)
-        i, j, d = _neighbor_pairs(tree, v, lo, hi, max(radius, lrf_radius))
+    desc = np.zeros((v.shape[0], N_SECTORS * (n_bins + 1)), dtype=np.float32)
+    for lo, hi, i, j, d in _neighbourhood_blocks(v, max(radius, lrf_radius)):
         in_lrf = d <= lrf_radius
         frames, has_frame = _local_frames(
             v, i[in_lrf], j[in_lrf], d[in_lrf], lrf_radius, squared_lrf_weights, min_lrf_neighbors, lo, hi - lo
@@ -392,7 +385,7 @@ def _histogram_block(
     n_bins: int,
     azimuth_wrap: int,
     wrap_cosine: bool,
-    offset: int = 0,
+    offset: int,
 ) -> np.ndarray:
     """Unnormalized histograms (n_rows, 32 (n_bins + 1)) float64.
 
@@ -520,20 +513,22 @@ def _total_area(v: np.ndarray, f: np.ndarray) -> float:
     return area
 
 
-def _neighbor_pairs(tree: cKDTree, v: np.ndarray, lo: int, hi: int, radius: float
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The ordered pairs (i, j), ``lo <= i < hi``, ``j != i``, with |v_j - v_i| <= radius: by i, then j.
+def _neighbourhood_blocks(v: np.ndarray, radius: float):
+    """Neighbour pairs per block of ``CENTRE_BLOCK`` consecutive centres.
 
-    ``tree``: ``cKDTree(v)``. Returns ``i, j`` (m,) int64 (vertex indices) and the distances ``d`` (m,) float64.
+    Yields ``lo, hi, i, j, d``: the ordered pairs (i, j) with ``lo <= i < hi``, ``j != i`` and
+    |v_j - v_i| <= radius, sorted by i, then j; ``i, j`` (m,) int64 vertex indices, ``d`` (m,) float64 distances.
     """
-    balls = tree.query_ball_point(v[lo:hi], radius, return_sorted=True)
-    counts = np.fromiter((len(b) for b in balls), dtype=np.int64, count=len(balls))
-    j = np.fromiter(itertools.chain.from_iterable(balls), dtype=np.int64, count=int(counts.sum()))
-    i = np.repeat(np.arange(lo, hi, dtype=np.int64), counts)
-    other = j != i
-    i, j = i[other], j[other]
-    d = np.linalg.norm(v[j] - v[i], axis=1)
-    return i, j, d
+    tree = cKDTree(v)
+    for lo in range(0, v.shape[0], CENTRE_BLOCK):
+        hi = min(v.shape[0], lo + CENTRE_BLOCK)
+        balls = tree.query_ball_point(v[lo:hi], radius, return_sorted=True)
+        counts = np.fromiter((len(b) for b in balls), dtype=np.int64, count=len(balls))
+        j = np.fromiter(itertools.chain.from_iterable(balls), dtype=np.int64, count=int(counts.sum()))
+        i = np.repeat(np.arange(lo, hi, dtype=np.int64), counts)
+        other = j != i
+        i, j = i[other], j[other]
+        yield lo, hi, i, j, np.linalg.norm(v[j] - v[i], axis=1)
 
 
 def _local_frames(
@@ -544,14 +539,13 @@ def _local_frames(
     radius: float,
     squared_distance_weights: bool,
     min_lrf_neighbors: int,
-    offset: int = 0,
-    n: int | None = None,
+    offset: int,
+    n: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Frames (n, 3, 3) of the centres ``offset .. offset + n - 1`` (default: all vertices).
+    """Frames (n, 3, 3) of the centres ``offset .. offset + n - 1``.
 
     From their neighbour pairs (i, j) (vertex indices) at distances d (all <= radius); see :func:`shot_lrf`.
     """
-    n = v.shape[0] - offset if n is None else n
     q = v[j] - v[i]
     i = i - offset  # local centre indices from here on
     w = radius - (d * d if squared_distance_weights else d)
