@@ -89,8 +89,6 @@ def run_evaluate(root: Path, cache: Path, out: Path, n_eig: int, n_ref: int, mod
                  weights: str | None = None) -> dict:
     args = list(MODELS[model])
     if model == "deep_shells":
-        if not weights:
-            sys.exit("--models deep_shells needs --deep-shells-weights FILE or $SHAPECORR_DEEP_SHELLS_WEIGHTS")
         args.append(f"model.pretrained={weights}")
     cmd = [sys.executable, str(REPO / "evaluate.py"), *args, "data=folder", f"data.root={root}",
            f"paths.cache_dir={cache}", f"output_dir={out}", "n_examples=0", "progress=false", "workers=0",
@@ -144,18 +142,21 @@ def main() -> None:
     args = parser.parse_args()
     if not args.faust_r:
         sys.exit("give --faust-r DIR or set SHAPECORR_FAUST_R")
+    if "deep_shells" in args.models and not args.prepare_only and not args.deep_shells_weights:
+        sys.exit("--models deep_shells needs --deep-shells-weights FILE or $SHAPECORR_DEEP_SHELLS_WEIGHTS")
     sys.path.insert(0, str(REPO))
     runs = []
     for target in args.targets:
-        for model in ["prepare"] if args.prepare_only else args.models:
-            with tempfile.TemporaryDirectory(prefix="shapecorr_large_") as tmp:
-                tmp = Path(tmp)
-                counts = make_folder(tmp / "data", Path(args.faust_r), target)
+        with tempfile.TemporaryDirectory(prefix="shapecorr_large_") as tmp:
+            tmp = Path(tmp)
+            counts = make_folder(tmp / "data", Path(args.faust_r), target)  # once per size, shared by the runs
+            for model in ["prepare"] if args.prepare_only else args.models:
+                cache, out = tmp / model / "cache", tmp / model / "out"  # a fresh cache per run
                 if args.prepare_only:
-                    result = run_prepare(tmp / "data", tmp / "cache", tmp / "out", args.n_eig, args.n_ref)
+                    result = run_prepare(tmp / "data", cache, out, args.n_eig, args.n_ref)
                 else:
-                    result = run_evaluate(tmp / "data", tmp / "cache", tmp / "out", args.n_eig, args.n_ref,
-                                          model, args.deep_shells_weights)
+                    result = run_evaluate(tmp / "data", cache, out, args.n_eig, args.n_ref, model,
+                                          args.deep_shells_weights)
                 result.update({"mode": "prepare" if args.prepare_only else "evaluate", "model": model,
                                "target_vertices": target, "n_verts": counts, "n_ref": args.n_ref,
                                "n_eig": args.n_eig, "rows_mb_at_5000_refs": [4 * 5000 * n / 2**20 for n in counts]})
