@@ -479,7 +479,9 @@ class ShapeDataset(Dataset):
     ):
         self.root = Path(root)
         self.validation = ValidationOptions() if validation is None else validation
-        if reference_points is not None and (isinstance(reference_points, bool) or int(reference_points) < 1):
+        if reference_points is not None and (isinstance(reference_points, bool)
+                                             or not isinstance(reference_points, (int, np.integer))
+                                             or reference_points < 1):
             raise ConfigError(f"data.reference_points must be a positive number of points or null (all), "
                               f"got {reference_points!r}")
         self.reference_points = None if reference_points is None else int(reference_points)

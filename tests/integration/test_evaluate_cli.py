@@ -138,8 +138,9 @@ def test_reference_points_evaluates_an_even_subset(tiny, tmp_path):
     full = ShapeDataset(root, cache_dir=cache)
     assert set(shapes.geodesic_sources(0)) < set(full.geodesic_sources(0))
     assert len(shapes.geodesic_sources(0)) <= 100  # 50 points of the .vts and 50 of the .sym.vts
-    with pytest.raises(ConfigError, match="data.reference_points"):
-        ShapeDataset(root, cache_dir=cache, reference_points=0)
+    for bad in (0, "all", 2.5):
+        with pytest.raises(ConfigError, match="data.reference_points"):
+            ShapeDataset(root, cache_dir=cache, reference_points=bad)
 
 
 def test_descriptor_nn_in_parallel_workers(tiny, tmp_path):
