@@ -36,6 +36,7 @@ original are listed in docs/smooth_shells.md §6.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -377,6 +378,8 @@ class _Pair:
     def __init__(self, x: ShellsShape, y: ShellsShape, feats, need_arap: bool):
         self.x, self.y = x, y
         self.phi_x, self.phi_y = x.spectral.evecs, y.spectral.evecs
+        # float64 copies for the normal equations, made once per pair instead of once per solve
+        self.phi_x64, self.phi_y64 = self.phi_x.to(torch.float64), self.phi_y.to(torch.float64)
         self.mass_x, self.mass_y = x.spectral.mass, y.spectral.mass
         self.faces_x, self.faces_y = x.spectral.faces, y.spectral.faces
         self.n_x, self.n_y = x.spectral.n_verts, y.spectral.n_verts
@@ -394,6 +397,19 @@ class _Pair:
             diff = (self.phi_x[a] - self.phi_x[b]).to(torch.float64)
             self.arap_gram = 2.0 * diff.transpose(0, 1) @ diff
         self._shell_y = {}
+        self._feature_systems = {}
+
+    def feature_system(self, kk: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Descriptor term of the functional-map solve of size ``kk``, cached: ``F_X F_X^T (kk, kk)``,
+        ``F_X F_Y^T (kk, kk)`` (float64) and the spectral norm of the first."""
+        if kk not in self._feature_systems:
+            fx, fy = self.feat_x[:kk].to(torch.float64), self.feat_y[:kk].to(torch.float64)
+            if fx.shape[0] < kk:
+                raise ConfigError(f"the basis features have {fx.shape[0]} rows, a functional map of size {kk} "
+                                  "needs more")
+            mfeat = fx @ fx.transpose(0, 1)
+            self._feature_systems[kk] = (mfeat, fx @ fy.transpose(0, 1), _spectral_norm_psd(mfeat))
+        return self._feature_systems[kk]
 
     def shell_y(self, k: int) -> tuple[torch.Tensor, torch.Tensor]:
         """``Y_k`` (n_y, 3) and its normals, cached."""
@@ -412,10 +428,6 @@ def _shell(evecs: torch.Tensor, coeffs: torch.Tensor, k: int) -> torch.Tensor:
     return torch.matmul(evecs[:, :kk], w[None, :, None] * coeffs[:, :kk])
 
 
-def _batched_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    return torch.stack([vertex_normals(v, faces) for v in verts])
-
-
 # ---------------------------------------------------------------------------------------------------------
 # batched building blocks
 
@@ -423,25 +435,40 @@ def _batched_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 def _nearest(queries: torch.Tensor, points: torch.Tensor, backend: str = "auto") -> torch.Tensor:
     """Exact Euclidean nearest neighbours in batches.
 
-    For ``queries (B, q, d)``, ``points (B, p, d)``: the index ``(B, q)`` of the nearest point.
+    For ``queries (B or 1, q, d)``, ``points (B or 1, p, d)`` (a batch dimension of 1 is shared by every batch
+    element): the index ``(B, q)`` of the nearest point.
 
     Written here because :mod:`shapecorr.matching.nearest_neighbors` has no batch dimension; the random search
     and the rigid surrogate runs solve many small independent problems at once. On the GPU: one distance
-    block per chunk of queries for the whole batch (float32); on the CPU: a k-d tree per batch element (scipy,
-    exact, float64), which is faster there for these low-dimensional embeddings (measured: brute force was
-    ~20x slower for 1000 x 5000 points in 26 dimensions), queried with torch's intra-op thread count.
+    block per chunk of queries for the whole batch (float32); on the CPU: scipy k-d trees (exact, float64),
+    which are faster there for these low-dimensional embeddings (measured: brute force was ~20x slower for
+    1000 x 5000 points in 26 dimensions, and batched float32 brute force ~1.7x slower for 1000 x 1000). A shared
+    point set is one tree for the whole batch (the Y side of every search: Y's embedding does not depend on
+    the proposal); the batch elements are spread over torch's intra-op thread count (scipy releases the GIL).
     """
-    b, q, _ = queries.shape
-    p = points.shape[1]
+    b = max(queries.shape[0], points.shape[0])
+    q, p = queries.shape[1], points.shape[1]
     if backend == "auto":
         backend = "kdtree" if queries.device.type == "cpu" else "brute"
     if backend == "kdtree":
+        pts = points.detach().to(torch.float64).cpu().numpy()
+        qrs = queries.detach().to(torch.float64).cpu().numpy()
+        shared = cKDTree(pts[0]) if pts.shape[0] == 1 else None
         out = np.empty((b, q), dtype=np.int64)
-        threads = torch.get_num_threads()
-        for i in range(b):
-            pts = points[i].detach().to(torch.float64).numpy()
-            out[i] = cKDTree(pts).query(queries[i].detach().to(torch.float64).numpy(), k=1, workers=threads)[1]
+
+        def one(i: int) -> None:
+            tree = shared if shared is not None else cKDTree(pts[i])
+            out[i] = tree.query(qrs[0] if qrs.shape[0] == 1 else qrs[i], k=1)[1]
+
+        threads = min(torch.get_num_threads(), b)
+        if threads > 1:
+            with ThreadPoolExecutor(max_workers=threads) as pool:
+                list(pool.map(one, range(b)))
+        else:
+            for i in range(b):
+                one(i)
         return torch.from_numpy(out).to(queries.device)
+    queries, points = queries.expand(b, -1, -1), points.expand(b, -1, -1)
     chunk = max(1, NN_BLOCK_ENTRIES // max(1, b * p))
     out = torch.empty(b, q, dtype=torch.int64, device=queries.device)
     pp = points.square().sum(-1)[:, None, :]
@@ -483,6 +510,12 @@ def _solve_spd(gram: torch.Tensor, rhs: torch.Tensor, ridge: float, what: str) -
     if not torch.isfinite(sol).all():
         raise NumericalError(f"{what}: the solution contains NaN or Inf")
     return sol
+
+
+def _spectral_norm_psd(m: torch.Tensor) -> torch.Tensor:
+    """Spectral norm of symmetric positive semi-definite ``(..., k, k)``: its largest eigenvalue (cheaper than
+    the SVD of ``matrix_norm(ord=2)``)."""
+    return torch.linalg.eigvalsh(m)[..., -1].clamp_min(0)
 
 
 def _orthogonalize(c: torch.Tensor) -> torch.Tensor:
@@ -585,29 +618,60 @@ def _correspondences(pair: _Pair, run: _Run, emb_x, emb_y):
         return a[None], ai[None]
     qx, qy = emb_x[:, sx], emb_y[:, sy]
     if run.mode == 2:
-        a = sy[_nearest(qx, qy.expand(b, -1, -1))]
-        ai = sx[_nearest(qy.expand(b, -1, -1), qx)]
+        a = sy[_nearest(qx, qy)]
+        ai = sx[_nearest(qy, qx)]
     else:
-        a = _nearest(qx, emb_y.expand(b, -1, -1))
-        ai = _nearest(qy.expand(b, -1, -1), emb_x)
+        a = _nearest(qx, emb_y)
+        ai = _nearest(qy, emb_x)
     return a, ai
+
+
+def _row_normal_equations(phi: torch.Tensor, rows: torch.Tensor, values: torch.Tensor,
+                          vertex_weights: torch.Tensor | None = None):
+    """``sum_r w phi_r^T phi_r`` and ``sum_r w phi_r^T v_r`` over the rows ``r`` of each batch element.
+
+    Parameters
+    ----------
+    phi : (n, k) float64
+        Basis of X.
+    rows : (B, r) int64
+        Vertex of every pair (a vertex may repeat).
+    values : (B, r, c) float64
+        Target of every pair.
+    vertex_weights : (n,) float64, optional
+        Weight ``w`` of each vertex (1 if omitted).
+
+    Returns
+    -------
+    gram : (B, k, k) float64
+    rhs : (B, k, c) float64
+
+    With fewer pairs than vertices (the surrogate runs on samples) the rows are gathered; otherwise they are
+    first summed per vertex (a scatter), so the products run over n rows either way, whichever is fewer.
+    """
+    b, r = rows.shape
+    n = phi.shape[0]
+    if r < n:
+        phi_r = phi[rows]  # (B, r, k)
+        weighted = phi_r if vertex_weights is None else phi_r * vertex_weights[rows][..., None]
+        return torch.matmul(weighted.transpose(1, 2), phi_r), torch.matmul(weighted.transpose(1, 2), values)
+    counts = _scatter_rows(n, rows, torch.ones(b, r, 1, dtype=phi.dtype, device=phi.device))
+    summed = _scatter_rows(n, rows, values)
+    if vertex_weights is not None:
+        counts = counts * vertex_weights[None, :, None]
+        summed = vertex_weights[None, :, None] * summed
+    return torch.matmul(phi.transpose(0, 1), counts * phi), torch.matmul(phi.transpose(0, 1), summed)
 
 
 def _tau_system(pair: _Pair, run: _Run, shell_x, shell_y, assign, assign_inv, k):
     """Data part of the ``tau`` normal equations (not area weighted, as in the original): (B, k, k), (B, k, 3)."""
     b = shell_x.shape[0]
     sx, sy = run.samples_x[None].expand(b, -1), run.samples_y[None].expand(b, -1)
-    phi = pair.phi_x[:, :k].to(torch.float64)
     sx64, sy64 = shell_x.to(torch.float64), shell_y.to(torch.float64)[None]
     rows = torch.cat([sx, assign_inv], 1)
-    counts = _scatter_rows(pair.n_x, rows, torch.ones(b, rows.shape[1], 1, dtype=torch.float64,
-                                                        device=phi.device))
     target = torch.cat([_gather_rows(sy64, assign) - _gather_rows(sx64, sx),
                         _gather_rows(sy64, sy) - _gather_rows(sx64, assign_inv)], 1)
-    t = _scatter_rows(pair.n_x, rows, target)
-    gram = torch.matmul(phi.transpose(0, 1), counts * phi)
-    rhs = torch.matmul(phi.transpose(0, 1), t)
-    return gram, rhs
+    return _row_normal_equations(pair.phi_x64[:, :k], rows, target)
 
 
 def _arap_system(pair: _Pair, shell_x, deformed, k):
@@ -618,13 +682,13 @@ def _arap_system(pair: _Pair, shell_x, deformed, k):
     d = (shell_x[:, a] - shell_x[:, b]).to(torch.float64)  # x_a - x_b
     g = torch.matmul(rot[:, a] + rot[:, b] - 2 * eye, d[..., None])[..., 0]
     s = torch.zeros_like(shell_x, dtype=torch.float64).index_add_(1, a, g).index_add_(1, b, -g)
-    phi = pair.phi_x[:, :k].to(torch.float64)
+    phi = pair.phi_x64[:, :k]
     return pair.arap_gram[:k, :k], torch.matmul(phi.transpose(0, 1), s), rot
 
 
 def _tau_objective(pair, run, shell_x, shell_y, assign, assign_inv, tau, k, rot, arap_weight):
     """``sum |X* - Y_k[pi]|^2 + sum |X*[pi'] - Y_k|^2 + w sum_directed |(Phi_i - Phi_j) tau - (R_i - I) d_ij|^2``."""
-    phi = pair.phi_x[:, :k].to(torch.float64)
+    phi = pair.phi_x64[:, :k]
     disp = torch.matmul(phi, tau[:, :k])
     cur = shell_x.to(torch.float64) + disp
     sy64 = shell_y.to(torch.float64)[None]
@@ -649,16 +713,11 @@ def _functional_map(pair: _Pair, run: _Run, kk: int, assign=None, assign_inv=Non
     f64 = torch.float64
     if assign is not None:
         b = assign.shape[0]
-        phi = pair.phi_x[:, :kk].to(f64)
         sx, sy = run.samples_x[None].expand(b, -1), run.samples_y[None].expand(b, -1)
         rows = torch.cat([sx, assign_inv], 1)
-        area = pair.mass_x.to(f64)
-        wts = _scatter_rows(pair.n_x, rows, torch.ones(b, rows.shape[1], 1, dtype=f64, device=phi.device))
-        wts = wts * area[None, :, None]
-        phi_y = pair.phi_y[:, :kk].to(f64)[None]
-        t = _scatter_rows(pair.n_x, rows, torch.cat([_gather_rows(phi_y, assign), _gather_rows(phi_y, sy)], 1))
-        gram = torch.matmul(phi.transpose(0, 1), wts * phi)
-        rhs = torch.matmul(phi.transpose(0, 1), area[None, :, None] * t)
+        phi_y = pair.phi_y64[:, :kk][None]
+        targets = torch.cat([_gather_rows(phi_y, assign), _gather_rows(phi_y, sy)], 1)
+        gram, rhs = _row_normal_equations(pair.phi_x64[:, :kk], rows, targets, pair.mass_x.to(f64))
         lambda_feat = run.lambda_feat
     else:
         b = batch
@@ -666,11 +725,8 @@ def _functional_map(pair: _Pair, run: _Run, kk: int, assign=None, assign_inv=Non
         rhs = torch.zeros_like(gram)
         lambda_feat = 1.0  # descriptors only (the original's FM without correspondences)
     if pair.feat_x is not None and lambda_feat > 0:
-        fx, fy = pair.feat_x[:kk].to(f64), pair.feat_y[:kk].to(f64)
-        if fx.shape[0] < kk:
-            raise ConfigError(f"the basis features have {fx.shape[0]} rows, a functional map of size {kk} needs more")
-        mfeat, zfeat = fx @ fx.transpose(0, 1), fx @ fy.transpose(0, 1)
-        c = torch.linalg.matrix_norm(gram, ord=2) / torch.linalg.matrix_norm(mfeat, ord=2)
+        mfeat, zfeat, mfeat_norm = pair.feature_system(kk)
+        c = _spectral_norm_psd(gram) / mfeat_norm
         c = torch.where(c > 0, c, torch.ones_like(c))
         gram = gram + (c * lambda_feat)[:, None, None] * mfeat
         rhs = rhs + (c * lambda_feat)[:, None, None] * zfeat
@@ -715,7 +771,7 @@ def _match_layer(pair: _Pair, run: _Run, st: _State, k: int, first_pairs=None) -
         if first_pairs is not None and sub == 0:
             assign, assign_inv = first_pairs
         else:
-            normals_x = _batched_normals(deformed, pair.faces_x) if damping > 0 else None
+            normals_x = vertex_normals(deformed, pair.faces_x) if damping > 0 else None
             emb_x, emb_y = _embeddings(pair, st, deformed, normals_x, shell_y, normals_y, run.fac_feat, damping)
             assign, assign_inv = _correspondences(pair, run, emb_x, emb_y)
         gram, rhs = _tau_system(pair, run, shell_x, shell_y, assign, assign_inv, k)
@@ -789,7 +845,7 @@ def _score(pair: _Pair, run: _Run, st: _State, full_x, fac_feat, damping, normal
 
     ``descriptors`` (:func:`_descriptor_block`) add the descriptor disagreement of the pairs to the residual.
     """
-    normals_x = _batched_normals(full_x, pair.faces_x)
+    normals_x = vertex_normals(full_x, pair.faces_x)
     emb_x, emb_y = _embeddings(pair, st, full_x, normals_x, pair.verts_y, normals_y_full, fac_feat, damping)
     assign, assign_inv = _correspondences(pair, run, emb_x, emb_y)
     _, fac_n = _embedding_scales(pair, pair.verts_y, normals_y_full, 0, fac_feat, damping)
@@ -942,7 +998,7 @@ def rigid_alignment(x: ShellsShape, y: ShellsShape, config: SmoothShellsConfig =
                mode=1, samples_x=samples_x, samples_y=samples_y, ridge=config.ridge, nn_backend=config.nn_backend)
     w_init = sigmoid_shell_weights(K_START, dtype=dtype, device=dev)
     c_init = _functional_map(pair, replace(run, lambda_lap=torch.tensor([0.0])), w_init.shape[0], batch=1)
-    normals_y_full = _batched_normals(_shell(pair.phi_y, sy.coeffs[None], config.k_max), sy.faces)[0]
+    normals_y_full = vertex_normals(_shell(pair.phi_y, sy.coeffs[None], config.k_max), sy.faces)[0]
     y_centroid = _area_centroid(sy.verts.to(torch.float64), m_y)
     descriptors = _descriptor_block(pair, feats, config.score_descriptors)
 
@@ -1038,7 +1094,7 @@ def random_search_init(x: ShellsShape, y: ShellsShape, aligned_x: torch.Tensor,
     props = (sigma[None, :, None] * noise).to(dev)
     laps = torch.tensor(config.mcmc_lambda_laps, dtype=torch.float64)[choice]
     w20 = sigmoid_shell_weights(K_START, dtype=dtype, device=dev)
-    normals_y_full = _batched_normals(_shell(pair.phi_y, sy.coeffs[None], config.k_max), sy.faces)[0]
+    normals_y_full = vertex_normals(_shell(pair.phi_y, sy.coeffs[None], config.k_max), sy.faces)[0]
     descriptors = _descriptor_block(pair, feats, config.score_descriptors)
     scores, taus, fmaps = [], [], []
     for start in range(0, num, config.mcmc_batch):
