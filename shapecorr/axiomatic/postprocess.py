@@ -11,6 +11,7 @@ from __future__ import annotations
 from shapecorr.axiomatic.smooth_shells import K_START, SmoothShells, refine, shape_from_sample
 from shapecorr.data.operators import merge_requests
 from shapecorr.errors import ConfigError
+from shapecorr.eval.protocol import INITIAL_MAP_KEY
 from shapecorr.matching.result import MatchResult
 
 
@@ -65,5 +66,5 @@ class SmoothShellsPostprocess:
         res = refine(shape_from_sample(x, need), shape_from_sample(y, need), initial.p2p, k_start=self.k_start,
                      initial_map_inv=initial.p2p_inv, config=self.config)
         return MatchResult(p2p=res.map_x_to_y, p2p_inv=res.map_y_to_x,
-                           extras={"initial_p2p": initial.p2p, "deformed_x": res.deformed_x,
+                           extras={INITIAL_MAP_KEY: initial.p2p, "deformed_x": res.deformed_x,
                                    "k_array": res.k_array, "level_objectives": res.level_objectives})

@@ -72,6 +72,9 @@ DEFAULT_GEODESIC_CACHE = 2
 GEODESIC_METHODS = ("heat", "exact")
 #: The time of the frame compared with the target (x fully deformed onto y).
 UNIT_TIME = 1.0
+#: ``MatchResult.extras`` key of a post-processed matcher's map before its refinement (scored as
+#: ``PairRecord.initial_mean_error``).
+INITIAL_MAP_KEY = "initial_p2p"
 #: Two frame times closer than this are the same time (float32 tensors carry times to ~1e-7).
 TIME_ATOL = 1e-6
 START_METHODS = ("spawn", "forkserver", "fork")
@@ -111,6 +114,9 @@ class PairRecord:
         Interpolating matchers: the time of every computed frame (extrapolated ones and an added t = 1
         included) and that frame's conformal distortion and volume score (None entries: open mesh or
         inverted frame). Kept in ``pairs/<x>__<y>.json``; not columns of ``per_pair.csv``.
+    initial_mean_error : float or None
+        Post-processed matchers (``postprocess=``, whose result carries ``extras["initial_p2p"]``): the mean
+        error of the wrapped matcher's map before the refinement, on the same reference points; None otherwise.
     """
 
     source: str
@@ -131,6 +137,7 @@ class PairRecord:
     curve_times: list[float] | None = None
     curve_conformal_distortion: list[float] | None = None
     curve_volume_score: list[float | None] | None = None
+    initial_mean_error: float | None = None
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "PairRecord":
@@ -637,6 +644,10 @@ class PairEvaluator:
         if self.settings.write_maps:
             write_map_files(self.out_dir, x.name, y.name, result.p2p)
         errors, errors_sym = scores["errors"], scores["errors_sym"]
+        initial = result.extras.get(INITIAL_MAP_KEY)
+        if initial is not None:  # a post-processed matcher: score the map it started from as well
+            initial_scores = score_map(initial, x, y, self.geodesics(j), self.settings.conformal_clamp)
+            extra["initial_mean_error"] = float(initial_scores["errors"].mean())
         record = PairRecord(
             source=x.name,
             target=y.name,

@@ -24,6 +24,9 @@ Aggregation conventions (documented in ``metrics.json`` itself under ``"conventi
   ``interp_curves``: per frame time, the means over pairs of the conformal distortion and of the volume score
   ``V_t/V_0 + V_0/V_t - 2`` (drawn as ``interp_curves.png`` by :mod:`shapecorr.viz.interp_curves`). These
   keys are absent for matchers without a deformation.
+* only for post-processed matchers (``postprocess=``): ``mean_initial_geodesic_error``, the mean over those
+  pairs of the wrapped matcher's per-pair mean error before the refinement (same reference points), and
+  ``n_pairs_initial``.
 """
 
 from __future__ import annotations
@@ -177,6 +180,10 @@ def aggregate(
         value = _mean_of(records, attr)
         if value is not None:
             out[f"mean_{attr}"] = value
+    initial = [r.initial_mean_error for r in records if r.initial_mean_error is not None]
+    if initial:
+        out["mean_initial_geodesic_error"] = float(np.mean(initial))
+        out["n_pairs_initial"] = len(initial)
     interpolated = sum(r.deformation_conformal_distortion is not None for r in records)
     if interpolated:
         out["n_pairs_interpolated"] = interpolated
@@ -192,6 +199,9 @@ def aggregate(
         "mean_conformal_distortion": "of the map: area-weighted (K - 1/K)^2 per source triangle with its corners "
         "moved to their images, clamped, mean over pairs",
     }
+    if initial:
+        out["conventions"]["mean_initial_geodesic_error"] = (
+            "post-processing: the wrapped matcher's map before the refinement, mean over pairs of the per-pair mean")
     if interpolated:
         out["conventions"].update(
             {
@@ -217,6 +227,8 @@ def summary(metrics_dict: Mapping[str, Any], out_dir: str | os.PathLike | None =
         f"(x100: {100 * m['mean_geodesic_error']:.2f}), PCK AUC {m['pck_auc']:.3f}, "
         f"{m['seconds_per_pair']:.3f} s/pair"
     )
+    if "mean_initial_geodesic_error" in m:
+        text += f" (before post-processing {m['mean_initial_geodesic_error']:.4f})"
     if "mean_geodesic_error_sym" in m:
         text += f"; vs mirrored ground truth {m['mean_geodesic_error_sym']:.4f}"
     if "mean_deformation_conformal_distortion" in m:

@@ -125,11 +125,12 @@ def test_postprocess_config_defaults_are_the_published_layered_matching(compose_
 
 
 def test_evaluate_with_postprocess_writes_metrics(compose_config, tmp_path):
+    common = ["data=synthetic", "data.synthetic.preset=tiny", "max_pairs=1",
+              "data.operators.params.shot.radius_factor=0.25", f"paths.cache_dir={tmp_path / 'cache'}",
+              "progress=false", "n_examples=0", "model=descriptor_nn"]
     out = tmp_path / "post"
-    cfg = compose_config("evaluate", overrides=[
-        "data=synthetic", "data.synthetic.preset=tiny", "max_pairs=1", "data.operators.params.shot.radius_factor=0.25",
-        f"paths.cache_dir={tmp_path / 'cache'}", f"output_dir={out}", "progress=false", "n_examples=0",
-        "model=descriptor_nn", "postprocess=smooth_shells", "postprocess.k_max=30", "postprocess.k_array_length=3",
+    cfg = compose_config("evaluate", overrides=common + [
+        f"output_dir={out}", "postprocess=smooth_shells", "postprocess.k_max=30", "postprocess.k_array_length=3",
     ])
     result = evaluate(cfg)
     metrics = json.loads((out / "metrics.json").read_text())
@@ -137,3 +138,11 @@ def test_evaluate_with_postprocess_writes_metrics(compose_config, tmp_path):
     run = json.loads((out / "run.json").read_text())
     assert run["matcher"].endswith("SmoothShellsPostprocess") and run["postprocess"]["k_max"] == 30
     assert result is not None
+    # the map before the refinement is scored too: it is the wrapped matcher's own result
+    alone = tmp_path / "alone"
+    evaluate(compose_config("evaluate", overrides=common + [f"output_dir={alone}"]))
+    metrics_alone = json.loads((alone / "metrics.json").read_text())
+    assert "mean_initial_geodesic_error" not in metrics_alone
+    assert metrics["n_pairs_initial"] == 1
+    assert metrics["mean_initial_geodesic_error"] == pytest.approx(metrics_alone["mean_geodesic_error"], abs=1e-12)
+    assert metrics["mean_initial_geodesic_error"] != metrics["mean_geodesic_error"]
