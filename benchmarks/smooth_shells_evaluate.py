@@ -1,7 +1,8 @@
 """Benchmark: Smooth Shells through evaluate.py on the FAUST_r test split, alone and as post-processing.
 
     python benchmarks/smooth_shells_evaluate.py --faust-r DIR [--max-pairs 40] [--runs NAME ...]
-        [--run-dir DIR] [--deep-shells-weights FILE] [--threads 1] [--workers 0] [--out FILE]
+        [--run-dir DIR] [--deep-shells-weights FILE] [--neuromorph-ckpt CKPT] [--threads 1] [--workers 0]
+        [--out FILE]
 
 Each run is one ``evaluate.py`` call (a subprocess with ``OMP_NUM_THREADS=--threads``) on the same evenly spaced
 ``--max-pairs`` of the 380 ordered pairs of shapes 080-099 (``max_pairs``; all 380 with ``--max-pairs 0``), into
@@ -18,13 +19,17 @@ deep_shells               ``model=deep_shells_published`` (the authors' released
 deep_shells_refined       the same with ``postprocess=smooth_shells`` (its maps refined from k = 20)
 descriptor_nn             ``model=descriptor_nn`` (WKS nearest neighbours: a rough map)
 descriptor_nn_refined     the same with ``postprocess=smooth_shells``
+neuromorph                ``model=neuromorph ckpt_path=--neuromorph-ckpt`` (a NeuroMorph checkpoint trained with
+                          train.py, e.g. ``experiment=neuromorph_faust_r``)
+neuromorph_refined        the same with ``postprocess=smooth_shells``
 interclass                ``model=smooth_shells_interclass data=synthetic`` on 4 humanoid <-> quadruped pairs of
                           the embedded data's test split (:data:`INTERCLASS_PAIRS`; semantic ground truth)
 interclass_descriptor_nn  ``model=descriptor_nn`` on the same pairs (a reference for that ground truth)
 ========================  =================================================================================
 
 Recorded per run: the metrics of its ``metrics.json`` (mean / median geodesic error, PCK AUC, seconds per
-pair, peak memory). Writes ``benchmarks/results/smooth_shells_evaluate.json``.
+pair, peak memory; for the ``*_refined`` runs also ``mean_initial_geodesic_error``, the wrapped matcher's map
+before the refinement on the same pairs). Writes ``benchmarks/results/smooth_shells_evaluate.json``.
 """
 
 from __future__ import annotations
@@ -42,7 +47,8 @@ RESULT = REPO / "benchmarks" / "results" / "smooth_shells_evaluate.json"
 #: Published FAUST_r errors (fraction of sqrt(area)): Smooth Shells 2.5 (Deep Shells paper's table), Deep Shells
 #: 1.7, NeuroMorph 2.3 -> 1.5 with Smooth Shells post-processing (NeuroMorph paper).
 PUBLISHED = {"smooth_shells": 0.025, "deep_shells": 0.017, "neuromorph": 0.023, "neuromorph_refined": 0.015}
-EXTRA_KEYS = ("peak_memory_mb", "n_pairs", "median_seconds_per_pair", "mean_geodesic_error_sym")
+EXTRA_KEYS = ("peak_memory_mb", "n_pairs", "median_seconds_per_pair", "mean_geodesic_error_sym",
+              "mean_initial_geodesic_error")
 
 RUNS = {
     "smooth_shells_norigid": ["model=smooth_shells", "model.no_rigid=true"],
@@ -52,6 +58,8 @@ RUNS = {
     "deep_shells_refined": ["model=deep_shells_published", "postprocess=smooth_shells"],
     "descriptor_nn": ["model=descriptor_nn"],
     "descriptor_nn_refined": ["model=descriptor_nn", "postprocess=smooth_shells"],
+    "neuromorph": ["model=neuromorph"],
+    "neuromorph_refined": ["model=neuromorph", "postprocess=smooth_shells"],
     "interclass": ["model=smooth_shells_interclass"],
     "interclass_descriptor_nn": ["model=descriptor_nn"],
 }
@@ -61,7 +69,7 @@ INTERCLASS_PAIRS = (("human_s06_p00", "quad_s03_p00"), ("human_s07_p02", "quad_s
 
 
 def eval_command(name: str, out: Path, faust_r: str, max_pairs: int, weights: str | None,
-                 workers: int = 0) -> list[str]:
+                 workers: int = 0, neuromorph_ckpt: str | None = None) -> list[str]:
     args = list(RUNS[name])
     common = [f"output_dir={out}", f"hydra.run.dir={out}", "progress=false", "n_examples=4", f"workers={workers}"]
     if name.startswith("interclass"):
@@ -73,6 +81,10 @@ def eval_command(name: str, out: Path, faust_r: str, max_pairs: int, weights: st
         if not weights:
             raise SystemExit(f"run {name}: pass --deep-shells-weights or set SHAPECORR_DEEP_SHELLS_WEIGHTS")
         args.append(f"model.pretrained={weights}")
+    if name.startswith("neuromorph"):
+        if not neuromorph_ckpt:
+            raise SystemExit(f"run {name}: pass --neuromorph-ckpt or set SHAPECORR_NEUROMORPH_CKPT")
+        args.extend([f"ckpt_path={neuromorph_ckpt}", "write_interp=false"])
     if max_pairs > 0:
         args.append(f"max_pairs={max_pairs}")
     return [sys.executable, "evaluate.py", *args, "data=faust_r", f"data.root={faust_r}", *common]
@@ -87,6 +99,9 @@ def main(argv=None) -> int:
     parser.add_argument("--run-dir", default=str(REPO / "outputs" / "bench" / "smooth_shells_evaluate"))
     parser.add_argument("--deep-shells-weights", default=os.environ.get("SHAPECORR_DEEP_SHELLS_WEIGHTS"),
                         help="the authors' released Deep Shells weights (default: $SHAPECORR_DEEP_SHELLS_WEIGHTS)")
+    parser.add_argument("--neuromorph-ckpt", default=os.environ.get("SHAPECORR_NEUROMORPH_CKPT"),
+                        help="a trained NeuroMorph checkpoint for the neuromorph runs (default: "
+                             "$SHAPECORR_NEUROMORPH_CKPT)")
     parser.add_argument("--threads", type=int, default=1, help="OMP_NUM_THREADS of the runs")
     parser.add_argument("--workers", type=int, default=0,
                         help="evaluate.py worker processes (pairs in parallel, each with --threads threads); an "
@@ -102,7 +117,8 @@ def main(argv=None) -> int:
         folder = run_dir / name
         if not args.collect_only and not (folder / "metrics.json").is_file():
             bench_common.run_command(eval_command(name, folder, args.faust_r, args.max_pairs,
-                                                  args.deep_shells_weights, args.workers), args.threads, REPO)
+                                                  args.deep_shells_weights, args.workers, args.neuromorph_ckpt),
+                                     args.threads, REPO)
         if (folder / "metrics.json").is_file():
             results[name] = read_metrics(folder, EXTRA_KEYS)
             print(f"{name}: mean geodesic error {100 * results[name]['mean_geodesic_error']:.2f} (x100), "
