@@ -1,12 +1,14 @@
 """Benchmark: Smooth Shells through evaluate.py on the FAUST_r test split, alone and as post-processing.
 
     python benchmarks/smooth_shells_evaluate.py --faust-r DIR [--max-pairs 40] [--runs NAME ...]
-        [--run-dir DIR] [--deep-shells-weights FILE] [--neuromorph-ckpt CKPT] [--threads 1] [--workers 0]
-        [--out FILE]
+        [--pair-file FILE] [--run-dir DIR] [--deep-shells-weights FILE] [--neuromorph-ckpt CKPT] [--threads 1]
+        [--workers 0] [--out FILE]
 
 Each run is one ``evaluate.py`` call (a subprocess with ``OMP_NUM_THREADS=--threads``) on the same evenly spaced
 ``--max-pairs`` of the 380 ordered pairs of shapes 080-099 (``max_pairs``; all 380 with ``--max-pairs 0``), into
 ``RUN_DIR/<name>``; an interrupted run resumes where it stopped (evaluate.py skips the pairs it has written).
+``--pair-file`` replaces the evenly spaced subset by a list of FAUST_r pairs (``x y`` per line, evaluated in
+that order; e.g. the pairs not yet measured first).
 
 ========================  =================================================================================
 name                      evaluate.py arguments
@@ -69,7 +71,7 @@ INTERCLASS_PAIRS = (("human_s06_p00", "quad_s03_p00"), ("human_s07_p02", "quad_s
 
 
 def eval_command(name: str, out: Path, faust_r: str, max_pairs: int, weights: str | None,
-                 workers: int = 0, neuromorph_ckpt: str | None = None) -> list[str]:
+                 workers: int = 0, neuromorph_ckpt: str | None = None, pair_file: str | None = None) -> list[str]:
     args = list(RUNS[name])
     common = [f"output_dir={out}", f"hydra.run.dir={out}", "progress=false", "n_examples=4", f"workers={workers}"]
     if name.startswith("interclass"):
@@ -85,7 +87,9 @@ def eval_command(name: str, out: Path, faust_r: str, max_pairs: int, weights: st
         if not neuromorph_ckpt:
             raise SystemExit(f"run {name}: pass --neuromorph-ckpt or set SHAPECORR_NEUROMORPH_CKPT")
         args.extend([f"ckpt_path={neuromorph_ckpt}", "write_interp=false"])
-    if max_pairs > 0:
+    if pair_file:
+        args.append(f"pair_file={Path(pair_file).absolute()}")
+    elif max_pairs > 0:
         args.append(f"max_pairs={max_pairs}")
     return [sys.executable, "evaluate.py", *args, "data=faust_r", f"data.root={faust_r}", *common]
 
@@ -96,6 +100,7 @@ def main(argv=None) -> int:
                         help="FAUST_r folder (default: $SHAPECORR_FAUST_R)")
     parser.add_argument("--max-pairs", type=int, default=40, help="evenly spaced test pairs (0: all 380)")
     parser.add_argument("--runs", nargs="+", default=list(RUNS), choices=list(RUNS), help="runs, in this order")
+    parser.add_argument("--pair-file", help="FAUST_r pairs to evaluate (x y per line) instead of --max-pairs")
     parser.add_argument("--run-dir", default=str(REPO / "outputs" / "bench" / "smooth_shells_evaluate"))
     parser.add_argument("--deep-shells-weights", default=os.environ.get("SHAPECORR_DEEP_SHELLS_WEIGHTS"),
                         help="the authors' released Deep Shells weights (default: $SHAPECORR_DEEP_SHELLS_WEIGHTS)")
@@ -116,14 +121,15 @@ def main(argv=None) -> int:
     for name in args.runs:
         folder = run_dir / name
         if not args.collect_only and not (folder / "metrics.json").is_file():
-            bench_common.run_command(eval_command(name, folder, args.faust_r, args.max_pairs,
-                                                  args.deep_shells_weights, args.workers, args.neuromorph_ckpt),
-                                     args.threads, REPO)
+            command = eval_command(name, folder, args.faust_r, args.max_pairs, args.deep_shells_weights,
+                                   args.workers, args.neuromorph_ckpt, args.pair_file)
+            bench_common.run_command(command, args.threads, REPO)
         if (folder / "metrics.json").is_file():
             results[name] = read_metrics(folder, EXTRA_KEYS)
             print(f"{name}: mean geodesic error {100 * results[name]['mean_geodesic_error']:.2f} (x100), "
                   f"{results[name].get('seconds_per_pair', float('nan')):.1f} s/pair", flush=True)
-    summary = {"run_dir": str(run_dir), "max_pairs": args.max_pairs, "threads": args.threads, "runs": results,
+    summary = {"run_dir": str(run_dir), "max_pairs": args.max_pairs, "pair_file": args.pair_file,
+               "threads": args.threads, "runs": results,
                "published": PUBLISHED,
                "units": "errors: geodesic distance / sqrt(area of the target) (x100 = percent)"}
     report = bench_common.summary_report("smooth_shells_evaluate.py", sys.argv[1:] if argv is None else list(argv),
