@@ -400,8 +400,10 @@ class _Pair:
         self._feature_systems = {}
 
     def feature_system(self, kk: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Descriptor term of the functional-map solve of size ``kk``, cached: ``F_X F_X^T (kk, kk)``,
-        ``F_X F_Y^T (kk, kk)`` (float64) and the spectral norm of the first."""
+        """Descriptor term of the functional-map solve of size ``kk``, cached per size.
+
+        Returns ``F_X F_X^T (kk, kk)``, ``F_X F_Y^T (kk, kk)`` (float64) and the spectral norm of the first.
+        """
         if kk not in self._feature_systems:
             fx, fy = self.feat_x[:kk].to(torch.float64), self.feat_y[:kk].to(torch.float64)
             if fx.shape[0] < kk:
@@ -513,8 +515,10 @@ def _solve_spd(gram: torch.Tensor, rhs: torch.Tensor, ridge: float, what: str) -
 
 
 def _spectral_norm_psd(m: torch.Tensor) -> torch.Tensor:
-    """Spectral norm of symmetric positive semi-definite ``(..., k, k)``: its largest eigenvalue (cheaper than
-    the SVD of ``matrix_norm(ord=2)``)."""
+    """Spectral norm of symmetric positive semi-definite ``(..., k, k)`` matrices: ``(...,)``.
+
+    The largest eigenvalue (cheaper than the SVD behind ``matrix_norm(ord=2)``).
+    """
     return torch.linalg.eigvalsh(m)[..., -1].clamp_min(0)
 
 
@@ -614,7 +618,8 @@ def _correspondences(pair: _Pair, run: _Run, emb_x, emb_y):
     b = emb_x.shape[0]
     full_x, full_y = sx.numel() == pair.n_x, sy.numel() == pair.n_y
     if run.mode == 2 and b == 1 and full_x and full_y:
-        a, ai = bidirectional_nearest_neighbors(emb_x[0], emb_y[0], backend=run.nn_backend)
+        a, ai = bidirectional_nearest_neighbors(emb_x[0], emb_y[0], backend=run.nn_backend,
+                                                workers=torch.get_num_threads())
         return a[None], ai[None]
     qx, qy = emb_x[:, sx], emb_y[:, sy]
     if run.mode == 2:
@@ -915,7 +920,8 @@ def _axis_icp(src: torch.Tensor, dst: torch.Tensor, axis: torch.Tensor, iteratio
     rot = torch.eye(3, dtype=torch.float64, device=src.device)
     for _ in range(iterations):
         p = p0 @ rot.transpose(0, 1)
-        a, ai = bidirectional_nearest_neighbors(p, q, backend="kdtree" if p.device.type == "cpu" else "brute")
+        a, ai = bidirectional_nearest_neighbors(p, q, backend="kdtree" if p.device.type == "cpu" else "brute",
+                                                workers=torch.get_num_threads())
         pp = torch.cat([p, p[ai]], 0)
         qq = torch.cat([q[a], q], 0)
         perp = pp - (pp @ u)[:, None] * u
