@@ -20,17 +20,16 @@ def face_normals(verts: torch.Tensor, faces: torch.Tensor, normalize: bool = Tru
 
     Parameters
     ----------
-    verts : (..., n, 3) float
-        One shape or a batch of poses of the same mesh.
+    verts : (n, 3) float
     faces : (f, 3) int64
     normalize : bool
         Unit normals (True) or cross products whose length is twice the triangle area (False).
 
     Returns
     -------
-    (..., f, 3) float
+    (f, 3) float
     """
-    v0, v1, v2 = verts[..., faces[:, 0], :], verts[..., faces[:, 1], :], verts[..., faces[:, 2], :]
+    v0, v1, v2 = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
     n = torch.linalg.cross(v1 - v0, v2 - v0, dim=-1)
     if normalize:
         n = n / (n.norm(dim=-1, keepdim=True) + NORMAL_EPS)
@@ -42,21 +41,19 @@ def vertex_normals(verts: torch.Tensor, faces: torch.Tensor, eps: float = NORMAL
 
     Parameters
     ----------
-    verts : (..., n, 3) float
-        One shape or a batch of poses of the same mesh.
+    verts : (n, 3) float
     faces : (f, 3) int64
     eps : float
         Added to the norm before normalizing; vertices in no face get the zero vector.
 
     Returns
     -------
-    (..., n, 3) float
+    (n, 3) float
     """
     fn = face_normals(verts, faces, normalize=False)
     acc = torch.zeros_like(verts)
     for c in range(3):
-        acc = acc.index_add(-2, faces[:, c], fn)
-    # Scale-free normalization: divide by the norm relative to the mean face size (per pose) so eps is
-    # meaningful for any unit of length.
-    size = fn.norm(dim=-1).mean(-1).clamp_min(1e-30)[..., None, None]
-    return acc / (acc.norm(dim=-1, keepdim=True) + eps * size)
+        acc = acc.index_add(0, faces[:, c], fn)
+    # Scale-free normalization: divide by the norm relative to the mean face size so eps is meaningful for
+    # any unit of length.
+    return acc / (acc.norm(dim=-1, keepdim=True) + eps * fn.norm(dim=-1).mean().clamp_min(1e-30))

@@ -139,15 +139,3 @@ def test_normals_differentiable_and_isolated_vertex_is_zero_not_nan(bumpy_sphere
     assert torch.isfinite(n).all() and (n[-1] == 0).all()
     (n[:, 0] * torch.arange(len(n))).sum().backward()
     assert torch.isfinite(verts.grad).all() and verts.grad[:-1].abs().sum() > 0
-
-
-def test_vertex_normals_of_a_batch_of_poses_equal_one_by_one(bumpy_sphere):
-    v, f = bumpy_sphere(2, seed=3)
-    faces = torch.from_numpy(f)
-    # poses of very different size: the eps term is relative to each pose's own face size
-    poses = torch.stack([torch.from_numpy(v), 1e-3 * torch.from_numpy(v) + 1.0, torch.from_numpy(v).flip(-1)])
-    batched = vertex_normals(poses, faces)
-    assert batched.shape == poses.shape
-    for pose, normals in zip(poses, batched):
-        torch.testing.assert_close(normals, vertex_normals(pose, faces), rtol=0, atol=1e-15)
-    torch.testing.assert_close(face_normals(poses, faces)[1], face_normals(poses[1], faces), rtol=0, atol=0)
