@@ -490,6 +490,28 @@ def _nearest(queries: torch.Tensor, points: torch.Tensor, backend: str = "auto")
     return out
 
 
+def _side_by_side(fn, items: list, device: torch.device) -> list:
+    """``[fn(item) for item in items]``, on the CPU with the items spread over torch's thread count.
+
+    The surrogate runs of the random search and of the rigid stage are independent batches of small tensors,
+    for which torch's intra-op threads barely help: whole batches run side by side instead, each thread with
+    one intra-op thread (torch and scipy release the GIL). Every item is computed exactly as in the serial loop.
+    """
+    threads = min(torch.get_num_threads(), len(items))
+    if device.type != "cpu" or threads < 2:
+        return [fn(item) for item in items]
+
+    def one(item):
+        torch.set_num_threads(1)  # this worker thread's own intra-op count
+        return fn(item)
+
+    try:
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            return list(pool.map(one, items))
+    finally:
+        torch.set_num_threads(max(threads, torch.get_num_threads()))
+
+
 def _solve_spd(gram: torch.Tensor, rhs: torch.Tensor, ridge: float, what: str) -> torch.Tensor:
     """Batched ``(G + ridge mean(diag G) I) X = rhs`` in float64 by Cholesky.
 
@@ -1016,6 +1038,8 @@ def rigid_alignment(x: ShellsShape, y: ShellsShape, config: SmoothShellsConfig =
     normals_y_full = vertex_normals(_shell(pair.phi_y, sy.coeffs[None], config.k_max)[0], sy.faces)
     y_centroid = _area_centroid(sy.verts.to(torch.float64), m_y)
     descriptors = _descriptor_block(pair, feats, config.score_descriptors)
+    for k in range(RIGID_K_MIN, K_START + 1):
+        pair.shell_y(k)  # fill the cache of Y's shells before the candidates share it
 
     def principal_axes(r, t):
         aligned = apply(r, t)
@@ -1028,17 +1052,22 @@ def rigid_alignment(x: ShellsShape, y: ShellsShape, config: SmoothShellsConfig =
             r_c, t_c = turn @ r, turn @ t
             t_c = t_c + y_centroid - _area_centroid(verts0 @ r_c.transpose(0, 1) + t_c, m_x)
             poses.append((r_c, t_c))
-        verts_b = torch.stack([apply(r_c, t_c) for r_c, t_c in poses]).to(dtype)
-        coeffs_b = torch.stack([spectral_coefficients(sx.evecs, sx.mass, v) for v in verts_b])
-        b = verts_b.shape[0]
-        st = _State(verts_x=verts_b, coeffs_x=coeffs_b, tau=torch.zeros(b, K_START, 3, dtype=torch.float64, device=dev),
-                    fmap=c_init.expand(b, -1, -1), k_prev=K_START, w_prev=w_init)
-        run_b = replace(run, lambda_lap=torch.full((b,), config.rigid_lambda_lap))
-        _layered(pair, run_b, st, range(RIGID_K_MIN, K_START + 1))
-        full = _reattach_detail(pair, verts_b, coeffs_b, st.tau, K_START)
-        scores = _score(pair, run_b, st, full, config.rigid_fac_feat, config.rigid_normal_damping, normals_y_full,
-                        descriptors)
-        return scores, poses
+        def surrogate(chunk):  # a batch of candidate poses
+            verts_b = torch.stack([apply(r_c, t_c) for r_c, t_c in chunk]).to(dtype)
+            coeffs_b = torch.stack([spectral_coefficients(sx.evecs, sx.mass, v) for v in verts_b])
+            b = verts_b.shape[0]
+            st = _State(verts_x=verts_b, coeffs_x=coeffs_b,
+                        tau=torch.zeros(b, K_START, 3, dtype=torch.float64, device=dev),
+                        fmap=c_init.expand(b, -1, -1), k_prev=K_START, w_prev=w_init)
+            run_b = replace(run, lambda_lap=torch.full((b,), config.rigid_lambda_lap))
+            _layered(pair, run_b, st, range(RIGID_K_MIN, K_START + 1))
+            full = _reattach_detail(pair, verts_b, coeffs_b, st.tau, K_START)
+            return _score(pair, run_b, st, full, config.rigid_fac_feat, config.rigid_normal_damping, normals_y_full,
+                          descriptors)
+
+        per_thread = -(-len(poses) // max(1, torch.get_num_threads()))
+        chunks = [poses[i:i + per_thread] for i in range(0, len(poses), per_thread)]
+        return torch.cat(_side_by_side(surrogate, chunks, dev)), poses
 
     all_scores = []
     count3, count1 = config.rigid_rotations
@@ -1111,8 +1140,7 @@ def random_search_init(x: ShellsShape, y: ShellsShape, aligned_x: torch.Tensor,
     w20 = sigmoid_shell_weights(K_START, dtype=dtype, device=dev)
     normals_y_full = vertex_normals(_shell(pair.phi_y, sy.coeffs[None], config.k_max)[0], sy.faces)
     descriptors = _descriptor_block(pair, feats, config.score_descriptors)
-    scores, taus, fmaps = [], [], []
-    for start in range(0, num, config.mcmc_batch):
+    def proposals(start: int):
         stop = min(num, start + config.mcmc_batch)
         b = stop - start
         tau = torch.zeros(b, K_START, 3, dtype=torch.float64, device=dev)
@@ -1125,10 +1153,13 @@ def random_search_init(x: ShellsShape, y: ShellsShape, aligned_x: torch.Tensor,
                    nn_backend=config.nn_backend)
         _layered(pair, run, st, range(MCMC_K_MIN, K_START + 1))
         full = _reattach_detail(pair, st.verts_x, st.coeffs_x, st.tau, K_START)
-        scores.append(_score(pair, run, st, full, config.score_fac_feat, config.normal_damping, normals_y_full,
-                             descriptors))
-        taus.append(st.tau)
-        fmaps.append(st.fmap)
+        score = _score(pair, run, st, full, config.score_fac_feat, config.normal_damping, normals_y_full,
+                       descriptors)
+        return score, st.tau, st.fmap
+
+    for k in range(MCMC_K_MIN, K_START + 1):
+        pair.shell_y(k)  # fill the cache of Y's shells before the batches share it
+    scores, taus, fmaps = zip(*_side_by_side(proposals, list(range(0, num, config.mcmc_batch)), dev))
     scores_t = torch.cat(scores)
     if not torch.isfinite(scores_t).all():
         raise NumericalError(f"random-search initialization of {sx.name}, {sy.name}: a proposal score is NaN/Inf")

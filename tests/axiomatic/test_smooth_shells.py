@@ -199,6 +199,22 @@ def test_deterministic_for_a_seed_and_independent_of_the_batch(base, rigid_pair)
     assert not torch.equal(first.mcmc_scores, other.mcmc_scores)
 
 
+def test_same_result_with_surrogate_runs_side_by_side(base, rigid_pair):
+    # with 2 threads the random-search batches and the rigid candidates run in parallel threads (each with one
+    # intra-op thread): every number must be the serial one, and the thread count must be restored
+    torch.set_num_threads(2)
+    try:
+        parallel = smooth_shells(base["x"], rigid_pair["y"], SMALL)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(1)
+    serial = smooth_shells(base["x"], rigid_pair["y"], SMALL)
+    assert torch.equal(parallel.mcmc_scores, serial.mcmc_scores)
+    assert all(torch.equal(a, b) for a, b in zip(parallel.rigid_scores, serial.rigid_scores))
+    assert torch.equal(parallel.rotation, serial.rotation) and torch.equal(parallel.tau, serial.tau)
+    assert torch.equal(parallel.map_x_to_y, serial.map_x_to_y)
+
+
 def test_refine_improves_a_noisy_map(base, rigid_pair):
     rng = np.random.default_rng(4)
     gt = rigid_pair["gt"]
