@@ -497,19 +497,20 @@ def _side_by_side(fn, items: list, device: torch.device) -> list:
     for which torch's intra-op threads barely help: whole batches run side by side instead, each thread with
     one intra-op thread (torch and scipy release the GIL). Every item is computed exactly as in the serial loop.
     """
-    threads = min(torch.get_num_threads(), len(items))
+    previous = torch.get_num_threads()
+    threads = min(previous, len(items))
     if device.type != "cpu" or threads < 2:
         return [fn(item) for item in items]
 
     def one(item):
-        torch.set_num_threads(1)  # this worker thread's own intra-op count
+        torch.set_num_threads(1)  # one intra-op thread per worker thread
         return fn(item)
 
     try:
         with ThreadPoolExecutor(max_workers=threads) as pool:
             return list(pool.map(one, items))
     finally:
-        torch.set_num_threads(max(threads, torch.get_num_threads()))
+        torch.set_num_threads(previous)
 
 
 def _solve_spd(gram: torch.Tensor, rhs: torch.Tensor, ridge: float, what: str) -> torch.Tensor:
@@ -1065,7 +1066,8 @@ def rigid_alignment(x: ShellsShape, y: ShellsShape, config: SmoothShellsConfig =
             return _score(pair, run_b, st, full, config.rigid_fac_feat, config.rigid_normal_damping, normals_y_full,
                           descriptors)
 
-        per_thread = -(-len(poses) // max(1, torch.get_num_threads()))
+        threads = torch.get_num_threads() if dev.type == "cpu" else 1  # one batch per thread (side by side)
+        per_thread = -(-len(poses) // max(1, threads))
         chunks = [poses[i:i + per_thread] for i in range(0, len(poses), per_thread)]
         return torch.cat(_side_by_side(surrogate, chunks, dev)), poses
 
