@@ -7,8 +7,9 @@
 Each run is one ``evaluate.py`` call (a subprocess with ``OMP_NUM_THREADS=--threads``) on the same evenly spaced
 ``--max-pairs`` of the 380 ordered pairs of shapes 080-099 (``max_pairs``; all 380 with ``--max-pairs 0``), into
 ``RUN_DIR/<name>``; an interrupted run resumes where it stopped (evaluate.py skips the pairs it has written).
-``--pair-file`` replaces the evenly spaced subset by a list of FAUST_r pairs (``x y`` per line, evaluated in
-that order; e.g. the pairs not yet measured first).
+``--pair-file`` replaces the evenly spaced subset by a list of FAUST_r pairs (``x y`` per line; evaluate.py runs
+them grouped by target shape, so a run stopped early has covered the first targets only: split a long list into
+interleaved parts and run them one after the other to keep every finished part evenly spread).
 
 ========================  =================================================================================
 name                      evaluate.py arguments
