@@ -684,7 +684,7 @@ def _row_normal_equations(phi: torch.Tensor, rows: torch.Tensor, values: torch.T
     rhs : (B, k, c) float64
 
     With fewer pairs than vertices (the surrogate runs on samples) the rows are gathered; otherwise they are
-    first summed per vertex (a scatter), so the products run over n rows either way, whichever is fewer.
+    first summed per vertex (a scatter): the products run over min(r, n) rows.
     """
     b, r = rows.shape
     n = phi.shape[0]
