@@ -471,13 +471,7 @@ def _nearest(queries: torch.Tensor, points: torch.Tensor, backend: str = "auto")
             tree = shared if shared is not None else cKDTree(pts[i])
             out[i] = tree.query(qrs[0] if qrs.shape[0] == 1 else qrs[i], k=1)[1]
 
-        threads = min(torch.get_num_threads(), b)
-        if threads > 1:
-            with ThreadPoolExecutor(max_workers=threads) as pool:
-                list(pool.map(one, range(b)))
-        else:
-            for i in range(b):
-                one(i)
+        _side_by_side(one, list(range(b)), torch.device("cpu"))
         return torch.from_numpy(out).to(queries.device)
     queries, points = queries.expand(b, -1, -1), points.expand(b, -1, -1)
     chunk = max(1, NN_BLOCK_ENTRIES // max(1, b * p))
