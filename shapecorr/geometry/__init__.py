@@ -1,33 +1,8 @@
-"""Geometry core: pure functions on meshes.
+"""Geometry core: pure functions on meshes, one module per concept.
 
-Precomputation (numpy in/out, float64): :func:`laplacian`, :func:`eigenbasis`, :func:`hks`, :func:`wks`,
-:func:`shot`, :func:`geodesic_distances`, :func:`farthest_point_sampling`, :func:`remesh`.
-Differentiable (torch): :func:`spectral_coefficients`, :func:`smooth_shell`, :func:`sigmoid_shell_weights`,
-:func:`vertex_normals`, :func:`face_normals`.
+Precomputation (numpy in/out, float64): ``laplace_beltrami`` (Laplacian, mass, eigenbasis), ``descriptors``
+(HKS, WKS), ``shot_descriptor``, ``geodesics``, ``sampling``, ``remeshing``. Differentiable (torch): ``shells``
+(spectral coefficients, smooth shells), ``normals``. Import the module you need
+(``from shapecorr.geometry.laplace_beltrami import eigenbasis``): the package itself imports nothing, so that
+``import shapecorr.geometry.mesh`` stays light (no libigl, potpourri3d or torch behind it).
 """
-
-from shapecorr.geometry.descriptors import hks, wks
-from shapecorr.geometry.geodesics import geodesic_distances
-from shapecorr.geometry.laplace_beltrami import ORIGINAL_EIGENVALUE_FACTOR, eigenbasis, laplacian
-from shapecorr.geometry.normals import face_normals, vertex_normals
-from shapecorr.geometry.remeshing import remesh
-from shapecorr.geometry.sampling import farthest_point_sampling
-from shapecorr.geometry.shells import sigmoid_shell_weights, smooth_shell, spectral_coefficients
-from shapecorr.geometry.shot_descriptor import shot
-
-__all__ = [
-    "ORIGINAL_EIGENVALUE_FACTOR",
-    "eigenbasis",
-    "face_normals",
-    "farthest_point_sampling",
-    "geodesic_distances",
-    "hks",
-    "laplacian",
-    "remesh",
-    "shot",
-    "sigmoid_shell_weights",
-    "smooth_shell",
-    "spectral_coefficients",
-    "vertex_normals",
-    "wks",
-]

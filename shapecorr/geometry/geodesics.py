@@ -47,17 +47,12 @@ from scipy.sparse.csgraph import connected_components
 
 from shapecorr.errors import ConfigError, InvalidMeshError, NumericalError
 from shapecorr.geometry.laplace_beltrami import mesh_arrays
+from shapecorr.geometry.memory import check_fits
 from shapecorr.geometry.mesh import as_numpy as _as_numpy
 
 #: Heat method time step t = HEAT_T_COEF * h^2, h the mean edge length (Crane et al. 2013, §3.2.4: m = 1).
 HEAT_T_COEF = 1.0
 GEODESIC_METHODS = ("heat", "exact")
-#: Bytes per stored distance of :func:`geodesic_distances_from` (float32 rows).
-DISTANCE_BYTES = 4
-#: Rough working memory of one heat-method solver per vertex (two sparse Cholesky factors of the intrinsic
-#: Delaunay cover plus the mesh data structures of potpourri3d): 2.3 kB/vertex measured (peak RSS) on a 5k-vertex
-#: FAUST_r shape; rounded up.
-HEAT_SOLVER_BYTES_PER_VERTEX = 4096
 
 
 def vertex_components(n_verts: int, faces: np.ndarray) -> tuple[int, np.ndarray]:
@@ -132,8 +127,6 @@ def geodesic_distances(
     n = v.shape[0]
 
     if all_pairs:
-        from shapecorr.geometry.memory import check_fits
-
         # the float64 matrix and the transposed copy of the symmetrization
         check_fits(2 * 8 * n * n, f"the all-pairs geodesic matrix of a {n}-vertex mesh",
                    "compute distances from the needed sources only (geodesic_distances_from), or work at a "
@@ -218,11 +211,6 @@ def _component_distances(v, f, sources, method: str, t_coef: float, robust: bool
     for a, row in enumerate(_rows_in_component(v, f, sources, method, t_coef, robust)):
         out[a] = row
     return out
-
-
-def source_distance_bytes(n_sources: int, n_verts: int) -> int:
-    """Estimated peak bytes of :func:`geodesic_distances_from`: the float32 rows plus one heat solver."""
-    return int(n_sources) * int(n_verts) * DISTANCE_BYTES + int(n_verts) * HEAT_SOLVER_BYTES_PER_VERTEX
 
 
 def geodesic_distances_from(

@@ -10,7 +10,6 @@ from __future__ import annotations
 import os
 
 from shapecorr.errors import ConfigError
-from shapecorr.geometry.geodesics import source_distance_bytes
 
 #: Working memory of one eigenbasis solve per vertex and eigenpair: the float64 eigenvectors plus ARPACK's
 #: Lanczos basis (about 2k vectors of length n) and the factorization; 3 x 8 bytes per entry, rounded up.
@@ -22,6 +21,12 @@ BASE_BYTES_PER_VERTEX = 4096
 #: Fraction of the available memory a preparation plans to use (the rest is left to the OS and this process).
 MEMORY_HEADROOM = 0.8
 GIB = 1024**3
+#: Bytes per stored distance of :func:`shapecorr.geometry.geodesics.geodesic_distances_from` (float32 rows).
+DISTANCE_BYTES = 4
+#: Rough working memory of one heat-method solver per vertex (two sparse Cholesky factors of the intrinsic
+#: Delaunay cover plus the mesh data structures of potpourri3d): 2.3 kB/vertex measured (peak RSS) on a 5k-vertex
+#: FAUST_r shape; rounded up.
+HEAT_SOLVER_BYTES_PER_VERTEX = 4096
 
 
 def available_memory_bytes() -> int | None:
@@ -34,6 +39,14 @@ def available_memory_bytes() -> int | None:
     except (OSError, ValueError, IndexError):
         return None
     return None
+
+
+def source_distance_bytes(n_sources: int, n_verts: int) -> int:
+    """Estimated peak bytes of :func:`shapecorr.geometry.geodesics.geodesic_distances_from`.
+
+    The float32 rows plus the working memory of one heat solver.
+    """
+    return int(n_sources) * int(n_verts) * DISTANCE_BYTES + int(n_verts) * HEAT_SOLVER_BYTES_PER_VERTEX
 
 
 def prepare_bytes(n_verts: int, n_eig: int = 0, n_geodesic_sources: int = 0) -> int:
