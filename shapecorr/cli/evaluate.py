@@ -59,6 +59,7 @@ import json
 import os
 import platform
 import shutil
+import signal
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -501,6 +502,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
             progress=bool(cfg.progress) and rank == 0,
         )
     except KeyboardInterrupt:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # the workers are stopped; a second Ctrl-C must not cut the exit
         print(interrupted_message(out_dir, protocol.count_done(out_dir, names), len(pairs)), file=sys.stderr)
         sys.exit(EXIT_INTERRUPTED)
     _barrier()

@@ -25,7 +25,6 @@ import logging
 import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -47,6 +46,7 @@ from shapecorr.data.operators import (
 )
 from shapecorr.data.shape import Normalization, Shape
 from shapecorr.data.validation import CLI_PREFIX, ValidationOptions
+from shapecorr.data.workers import process_pool, submit_all
 from shapecorr.errors import ConfigError, DatasetError, InvalidMeshError, ShapeCorrError
 
 MESH_DIRS = ("off", "shapes")
@@ -613,9 +613,11 @@ class ShapeDataset(Dataset):
             for job in tqdm(jobs, desc=desc, unit="shape", disable=not progress):
                 _prepare_one(job)
             return
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            for _ in tqdm(pool.map(_prepare_one, jobs), total=len(jobs), desc=desc, unit="shape", disable=not progress):
-                pass
+        # Ctrl-C: the workers are stopped at once (shapecorr.data.workers); finished cache entries are kept
+        with process_pool(workers) as pool:
+            for future in tqdm(submit_all(pool, _prepare_one, [(job,) for job in jobs]), total=len(jobs), desc=desc,
+                               unit="shape", disable=not progress):
+                future.result()
 
     def __repr__(self) -> str:
         return f"ShapeDataset(root={str(self.root)!r}, split={self.split!r}, n_shapes={len(self)})"

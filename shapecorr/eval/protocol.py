@@ -46,7 +46,7 @@ import os
 import time
 import warnings
 from collections import OrderedDict
-from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_EXCEPTION, wait
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Sequence
@@ -58,6 +58,7 @@ from tqdm.auto import tqdm
 from shapecorr.data.cache import atomic_open
 from shapecorr.data.datasets import pair_name
 from shapecorr.data.ground_truth import ground_truth_indices
+from shapecorr.data.workers import process_pool, submit_all
 from shapecorr.errors import ConfigError, CorrespondenceError, InvalidMeshError, NumericalError
 from shapecorr.eval import metrics
 from shapecorr.eval.export import write_map_files, write_sequence
@@ -673,8 +674,9 @@ def _init_worker(shapes, matcher, out_dir, settings, threads: int) -> None:
     global _WORKER
     import signal
 
-    # Ctrl-C reaches the whole process group: the parent stops the run (one line, see shapecorr.cli.evaluate);
-    # the workers finish their current pair instead of each printing a traceback.
+    # Ctrl-C reaches the whole process group: the parent stops the workers and the run (one line, see
+    # shapecorr.cli.evaluate) instead of each worker printing a traceback (already ignored from the start when
+    # submitted with shapecorr.data.workers.submit_all).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(threads)
     _WORKER = PairEvaluator(shapes, matcher, out_dir, settings)
@@ -738,25 +740,17 @@ def evaluate_pairs(
             # honours OMP_NUM_THREADS): oversubscribed OpenMP threads spin and slow everything down
             threads = max(1, min(torch.get_num_threads(), (os.cpu_count() or 1) // workers))
             ctx = multiprocessing.get_context(start_method)
-            with ProcessPoolExecutor(
-                max_workers=min(workers, len(todo)),
-                mp_context=ctx,
-                initializer=_init_worker,
-                initargs=(shapes, matcher, str(out_dir), settings, threads),
-            ) as pool:
-                pending = {pool.submit(_run_in_worker, i, j) for i, j in todo}
-                try:
-                    while pending:
-                        done, pending = wait(pending, return_when=FIRST_EXCEPTION)
-                        for future in done:
-                            if future.exception() is not None:
-                                for other in pending:
-                                    other.cancel()
-                                raise future.exception()
-                            bar.update()
-                except KeyboardInterrupt:
-                    pool.shutdown(wait=False, cancel_futures=True)  # running pairs finish, queued ones are dropped
-                    raise
+            # Ctrl-C: the workers ignore it and are terminated at once (shapecorr.data.workers); the pairs they
+            # were running are lost (their files are written atomically), the finished ones are kept
+            with process_pool(min(workers, len(todo)), ctx, _init_worker,
+                              (shapes, matcher, str(out_dir), settings, threads)) as pool:
+                pending = set(submit_all(pool, _run_in_worker, todo))
+                while pending:
+                    done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+                    for future in done:
+                        if future.exception() is not None:
+                            raise future.exception()
+                        bar.update()
     finally:
         bar.close()
     return [load_record(out_dir, a, b)[0] for a, b in names]
