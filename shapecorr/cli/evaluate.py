@@ -117,7 +117,9 @@ def build_matcher(cfg: DictConfig, device: torch.device):
         one_based = cfg.get("maps_one_based")
         if one_based is not None and not isinstance(one_based, bool):
             raise ConfigError(f"maps_one_based must be true, false or null (not said), got {one_based!r}")
-        return PrecomputedMaps(cfg.maps_dir, one_based=one_based, extension=str(cfg.maps_extension))
+        # precomputed maps are a matcher like any other: refined (postprocess=) and interpolated (interpolator=)
+        matcher = PrecomputedMaps(cfg.maps_dir, one_based=one_based, extension=str(cfg.maps_extension))
+        return with_interpolator(cfg, apply_postprocess(cfg, matcher))
     if model_cfg is None:
         raise ConfigError("nothing to evaluate: give model=<name> (e.g. model=descriptor_nn) or maps_dir=DIR")
     if "_target_" not in model_cfg:
@@ -238,11 +240,12 @@ def _check_run_file(out_dir: Path, fingerprint: dict[str, Any], resume: bool) ->
             previous = json.loads(run_file.read_text())
         except (OSError, ValueError):
             previous = None
-        if previous != fingerprint:
-            changed = sorted(k for k in fingerprint if previous is None or previous.get(k) != fingerprint[k])
+        changes = protocol.fingerprint_changes(previous, fingerprint)
+        if changes:
+            shown = "; ".join(changes[:4]) + (f"; and {len(changes) - 4} more" if len(changes) > 4 else "")
             raise ConfigError(
-                f"holds results of a different evaluation (differs in: {', '.join(changed) or 'format'}); "
-                "use another output_dir, or resume=false to start over",
+                f"holds results of a different evaluation ({RUN_FILE} differs in {shown}); use another output_dir, "
+                "or resume=false to start over",
                 out_dir,
             )
         return
@@ -463,10 +466,10 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
            if interpolator_config(cfg) is not None else {}),  # only when set: older run.json files still match
         "ckpt_path": str(cfg.ckpt_path) if cfg.get("ckpt_path") else None,
         "maps_dir": str(cfg.maps_dir) if cfg.get("maps_dir") else None,
-        "data_root": str(shapes.root.resolve()),
         "split": split,
         "geodesics": settings.geodesics,
-        "normalization": repr(shapes.normalization),
+        "conformal_clamp": settings.conformal_clamp,
+        **protocol.data_settings(shapes),  # every data setting that changes a number (operators, reference points)
     }
     if cfg.get("postprocess") is not None:
         fingerprint["postprocess"] = OmegaConf.to_container(cfg.postprocess, resolve=True)

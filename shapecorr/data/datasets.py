@@ -23,7 +23,7 @@ import hashlib
 import json
 import logging
 import os
-import re
+import shlex
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -211,9 +211,13 @@ class PairSample:
         return PairSample(self.x.to(device), self.y.to(device))
 
 
+#: Joins the two shape names of a pair's output files (:func:`pair_name`).
+PAIR_SEPARATOR = "__"
+
+
 def pair_name(name_x: str, name_y: str) -> str:
-    """File-name stem of a pair's outputs: ``<x>__<y>``."""
-    return f"{name_x}__{name_y}"
+    """File-name stem of a pair's outputs: ``<x>__<y>`` (unambiguous within a run: :func:`check_pair_names`)."""
+    return f"{name_x}{PAIR_SEPARATOR}{name_y}"
 
 
 def find_mesh_files(root: Path) -> dict[str, Path]:
@@ -623,23 +627,101 @@ class ShapeDataset(Dataset):
         return f"ShapeDataset(root={str(self.root)!r}, split={self.split!r}, n_shapes={len(self)})"
 
 
-def read_pair_file(path: str | os.PathLike) -> list[tuple[str, str]]:
-    """Pairs of shape names, one pair per line separated by tabs, commas or spaces (e.g. FAUST_r test_pairs.txt)."""
+def _pair_fields(line: str) -> list[str]:
+    """The names on a pair-file line: tab-separated fields when the line has a tab, else shell-like words split
+    at spaces or commas, with ``"..."`` / ``'...'`` quoting a name that contains them (no backslash escapes)."""
+    if "\t" in line:
+        return [part.strip() for part in line.split("\t") if part.strip()]
+    lexer = shlex.shlex(line, posix=True)
+    lexer.whitespace, lexer.whitespace_split, lexer.commenters, lexer.escape = " ,", True, "", ""
+    return list(lexer)
+
+
+def read_pair_lines(path: str | os.PathLike) -> list[tuple[int, str, str]]:
+    """``(line number, x, y)`` of every pair of a pair list file, each pair once.
+
+    One pair per line: two shape names separated by a tab (names may then contain spaces), or by spaces or commas
+    (a name with spaces or commas in double or single quotes). Blank lines and lines starting with ``#`` are
+    skipped. A pair listed again is dropped with one :class:`DatasetWarning` naming the lines (it would otherwise
+    be scored twice).
+
+    Raises
+    ------
+    DatasetError
+        Missing file, a line without exactly two names (or with an unclosed quote), no pair at all; the message
+        names the file and the line.
+    """
     path = Path(path)
     if not path.is_file():
-        raise DatasetError("pair list file does not exist", path)
-    pairs = []
+        raise DatasetError("pair list file does not exist" if not path.exists() else "is not a pair list file", path)
+    pairs: list[tuple[int, str, str]] = []
+    first_line: dict[tuple[str, str], int] = {}
+    repeats: list[str] = []
     for lineno, line in enumerate(path.read_text(errors="surrogateescape").splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
-        parts = [p for p in re.split(r"[\t, ]+", line) if p]
+        try:
+            parts = _pair_fields(line)
+        except ValueError as err:  # an unclosed quote
+            raise DatasetError(f"line {lineno}: {err} in {line[:80]!r}", path) from None
         if len(parts) != 2:
-            raise DatasetError(f"line {lineno}: expected two shape names, got {line!r}", path)
-        pairs.append((parts[0], parts[1]))
+            raise DatasetError(f"line {lineno}: expected two shape names, got {len(parts)} in {line[:80]!r} (separate "
+                               "them by a tab, or quote a name with spaces: \"my shape\" other)", path)
+        key = (parts[0], parts[1])
+        if key in first_line:
+            repeats.append(f"line {lineno} repeats line {first_line[key]} ({key[0]}, {key[1]})")
+            continue
+        first_line[key] = lineno
+        pairs.append((lineno, *key))
+    if repeats:
+        import warnings
+
+        warnings.warn(f"{path}: {len(repeats)} repeated pair(s) dropped, each pair is evaluated once: "
+                      f"{'; '.join(repeats[:5])}{'; ...' if len(repeats) > 5 else ''}", DatasetWarning, stacklevel=2)
     if not pairs:
         raise DatasetError("pair list file lists no pair", path)
     return pairs
+
+
+def read_pair_file(path: str | os.PathLike) -> list[tuple[str, str]]:
+    """Pairs of shape names of a pair list file (e.g. FAUST_r test_pairs.txt), each once; see :func:`read_pair_lines`."""
+    return [(x, y) for _, x, y in read_pair_lines(path)]
+
+
+def ambiguous_pair_names(pairs: Iterable[tuple[str, str]]) -> tuple[tuple[str, str], tuple[str, str]] | None:
+    """Two different pairs of ``pairs`` (name tuples) whose output files would share a name, or None.
+
+    Records and maps of a pair are named :func:`pair_name` ``<x>__<y>``: with shapes ``p``, ``p__q``, ``r`` and
+    ``q__r`` the pairs (p__q, r) and (p, q__r) are both ``p__q__r``.
+    """
+    seen: dict[str, tuple[str, str]] = {}
+    for x, y in pairs:
+        other = seen.setdefault(pair_name(x, y), (x, y))
+        if other != (x, y):
+            return other, (x, y)
+    return None
+
+
+def check_pair_names(pairs: Iterable[tuple[str, str]], where: str | os.PathLike | None = None) -> None:
+    """Raise :class:`~shapecorr.errors.DatasetError` when two of ``pairs`` would share their output files."""
+    clash = ambiguous_pair_names(pairs)
+    if clash is not None:
+        (a, b), (c, d) = clash
+        raise DatasetError(
+            f"the pairs ({a}, {b}) and ({c}, {d}) would share their output files {pair_name(a, b)}.* (shape names "
+            f"are joined by '{PAIR_SEPARATOR}'): rename the shapes so that no name holds '{PAIR_SEPARATOR}', or "
+            "evaluate only one of these pairs", where)
+
+
+def check_max_pairs(max_pairs: Any) -> int | None:
+    """``max_pairs`` as an int >= 1, or None (all pairs); anything else raises ConfigError."""
+    if max_pairs is None:
+        return None
+    if isinstance(max_pairs, bool) or not isinstance(max_pairs, (int, np.integer)) or max_pairs < 1:
+        raise ConfigError(f"max_pairs must be a positive number of pairs or null (all pairs), got {max_pairs!r} "
+                          "(evaluate.py max_pairs=N, or data.pairs.<split>.max_pairs in the data config)")
+    return int(max_pairs)
 
 
 class PairDataset(Dataset):
@@ -669,16 +751,18 @@ class PairDataset(Dataset):
         max_pairs: int | None = None,
     ):
         self.shapes = shapes
+        max_pairs = check_max_pairs(max_pairs)
         if pair_file is not None:
             in_root = Path(shapes.root) / pair_file
             if not Path(pair_file).is_absolute() and not Path(pair_file).exists() and in_root.is_file():
                 pair_file = in_root
-            pairs = read_pair_file(pair_file)
-        if pairs is None:
+            self.pairs = [self._pair_of_line(pair_file, lineno, a, b) for lineno, a, b in read_pair_lines(pair_file)]
+        elif pairs is None:
             n = len(shapes)
             self.pairs = [(i, j) for i in range(n) for j in range(n) if include_self or i != j]
         else:
             self.pairs = [(self._as_index(a), self._as_index(b)) for a, b in pairs]
+        check_pair_names(((shapes.names[i], shapes.names[j]) for i, j in self.pairs), pair_file or shapes.root)
         if max_pairs is not None and len(self.pairs) > max_pairs:
             keep = np.linspace(0, len(self.pairs) - 1, max_pairs).round().astype(int)
             self.pairs = [self.pairs[k] for k in keep]
@@ -687,6 +771,12 @@ class PairDataset(Dataset):
                 f"the pair list is empty: the split has {len(shapes)} shape(s) ({', '.join(shapes.names[:3])}) and "
                 "self-pairs are off; a pair needs two shapes (meshes directly inside off/ or shapes/; sub-folders "
                 "are not searched)", shapes.root)
+
+    def _pair_of_line(self, path, lineno: int, a: str, b: str) -> tuple[int, int]:
+        try:
+            return self._as_index(a), self._as_index(b)
+        except DatasetError as err:
+            raise DatasetError(f"line {lineno}: {err.problem} (dataset folder {err.path})", path) from None
 
     def _as_index(self, item: int | str) -> int:
         if isinstance(item, str):

@@ -43,6 +43,7 @@ All readers return zero-based int64 arrays; all writers take zero-based arrays.
 
 from __future__ import annotations
 
+import json
 import re
 from collections import Counter
 from os import PathLike
@@ -485,6 +486,43 @@ def write_vts(path: str | PathLike, idx_zero_based: np.ndarray) -> None:
 
 #: The evaluate.py option that says whether map files are one-based (named in every map-index error).
 MAPS_ONE_BASED_OPTION = "maps_one_based"
+
+
+#: File that ``evaluate.py`` writes beside its maps (``maps/``): it says the index base, so ``maps_dir=`` reads the
+#: folder without ``maps_one_based``.
+MAPS_MARKER = "maps.json"
+
+
+def write_maps_marker(folder: str | PathLike) -> Path:
+    """Write :data:`MAPS_MARKER` in ``folder`` (once): its ``.txt`` / ``.npy`` maps are zero-based."""
+    path = Path(folder) / MAPS_MARKER
+    if not path.is_file():
+        content = {"index_base": 0, "layout": "<x>__<y>.txt (one target vertex per line) and <x>__<y>.npy (int64)",
+                   "written_by": "shapecorr evaluate.py"}
+        with atomic_open(path) as handle:
+            handle.write((json.dumps(content, indent=1) + "\n").encode("ascii"))
+    return path
+
+
+def maps_marker_one_based(folder: str | PathLike) -> bool | None:
+    """The index base that ``folder``'s :data:`MAPS_MARKER` declares (True: one-based), or None without a marker.
+
+    Raises
+    ------
+    CorrespondenceError
+        The marker exists but is unreadable or declares another base than 0 or 1.
+    """
+    path = Path(folder) / MAPS_MARKER
+    if not path.is_file():
+        return None
+    try:
+        base = json.loads(path.read_text())["index_base"]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise CorrespondenceError(f"unreadable maps marker ({type(err).__name__}: {err}); delete it and set "
+                                  f"{MAPS_ONE_BASED_OPTION}=true|false", path) from None
+    if base not in (0, 1) or isinstance(base, bool):
+        raise CorrespondenceError(f"index_base must be 0 or 1, got {base!r}", path)
+    return base == 1
 
 
 def read_map(
