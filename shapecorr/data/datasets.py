@@ -24,6 +24,7 @@ import json
 import logging
 import os
 import shlex
+import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -52,7 +53,7 @@ from shapecorr.errors import ConfigError, DatasetError, InvalidMeshError, ShapeC
 MESH_DIRS = ("off", "shapes")
 MESH_EXTENSIONS = (".off", ".ply", ".obj")
 #: Version of the cached, validated and normalized meshes (bump when reading/validation/normalization changes).
-MESH_CACHE_VERSION = 1
+MESH_CACHE_VERSION = 2
 #: Folder of the split files ``<split>.txt`` under a dataset root.
 SPLITS_DIR = "splits"
 
@@ -248,8 +249,6 @@ def find_mesh_files(root: Path) -> dict[str, Path]:
         elif not path.name.startswith("."):
             skipped.append(f"{path.name} (not {'/'.join(MESH_EXTENSIONS)})")
     if skipped:
-        import warnings
-
         warnings.warn(f"{mesh_dir}: skipped {len(skipped)} entr{'y' if len(skipped) == 1 else 'ies'}: "
                       f"{', '.join(skipped[:5])}{', ...' if len(skipped) > 5 else ''}", DatasetWarning, stacklevel=2)
     if not files:
@@ -313,30 +312,50 @@ def select_names(
     return chosen
 
 
+def file_sha256(path: Path) -> str | None:
+    """SHA-256 (64 hex digits) of a file's bytes, read in blocks; None when it cannot be read."""
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as handle:
+            for block in iter(lambda: handle.read(_HASH_BLOCK_BYTES), b""):
+                digest.update(block)
+    except OSError:
+        return None
+    return digest.hexdigest()
+
+
+#: Block size of :func:`file_sha256` (hashing a 5k-vertex OFF file, ~0.3 MB, takes ~1 ms).
+_HASH_BLOCK_BYTES = 1 << 20
+
+
+def _without_prefix(message: str, prefix: str) -> str:
+    return message[len(prefix):] if message.startswith(prefix) else message
+
+
 def load_mesh_cached(
     cache: ShapeCache, path: Path, normalization: Normalization, validation: ValidationOptions | None = None
 ) -> Shape:
     """:func:`~shapecorr.data.io.load_shape` through the cache.
 
     Parsing and validating a 5k-vertex mesh file costs ~0.1-0.25 s, ten times more than reading its cached
-    operators; so the validated, normalized mesh is cached too, keyed by the file's resolved path, size and
-    modification time (any change of the file is a miss) and the normalization.
+    operators; so the validated, normalized mesh is cached too, keyed by the SHA-256 of the file's bytes (any edit
+    is a miss, whatever its size and modification time), the normalization and the validation options. The mesh
+    warnings of the file (:class:`~shapecorr.data.validation.MeshWarning`: components, non-manifold, duplicate or
+    degenerate faces) are kept in the entry and emitted again on every load, naming the file.
     """
-    stat = path.stat()
+    from shapecorr.data.validation import MeshWarning
+
     validation = ValidationOptions() if validation is None else validation
-    identity = {"path": str(path.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
-    params = {**identity, "normalization": asdict(normalization)}
-    if validation != ValidationOptions():  # the defaults keep the keys of existing cache entries
-        params["validation"] = asdict(validation)
-    key = CacheKey(
-        "mesh",
-        hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest(),
-        params,
-        MESH_CACHE_VERSION,
-        keep_float64=True,
-    )
+    digest = file_sha256(path)
+    if digest is None:  # unreadable or missing: load_shape names the problem
+        return load_shape(path, normalization=normalization, validation=validation)
+    params = {"file_sha256": digest, "normalization": asdict(normalization), "validation": asdict(validation)}
+    key = CacheKey("mesh", digest, params, MESH_CACHE_VERSION, keep_float64=True)
+    prefix = f"{path}: "
     hit = cache.get(key)
     if hit is not None:
+        for message in json.loads(hit["warnings"].tobytes().decode("utf-8")):
+            warnings.warn(prefix + message, MeshWarning, stacklevel=2)
         return Shape(
             verts=torch.from_numpy(hit["verts"].astype(np.float32)),
             faces=torch.from_numpy(hit["faces"].astype(np.int64)),
@@ -345,10 +364,16 @@ def load_mesh_cached(
             scale=float(hit["scale"][0]),
             offset=hit["offset"].astype(np.float64),
         )
-    shape = load_shape(path, normalization=normalization, validation=validation)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        shape = load_shape(path, normalization=normalization, validation=validation)
+    for w in caught:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+    messages = [_without_prefix(str(w.message), prefix) for w in caught if issubclass(w.category, MeshWarning)]
     if cache.writable:
         cache.put(key, {"verts": shape.verts.numpy(), "faces": shape.faces.numpy(),
-                        "scale": np.array([shape.scale]), "offset": np.asarray(shape.offset, np.float64)})
+                        "scale": np.array([shape.scale]), "offset": np.asarray(shape.offset, np.float64),
+                        "warnings": np.frombuffer(json.dumps(messages).encode("utf-8"), dtype=np.uint8)})
     return shape
 
 
@@ -393,8 +418,6 @@ def operators_with_fallback(cache: ShapeCache, shape: Shape, operators: Operator
             raise InvalidMeshError(
                 f"{err.problem}; set {CLI_PREFIX}laplacian_fallback=true (robust Laplacian for such shapes) or "
                 "data.operators.laplacian=robust (for every shape)", where) from None
-        import warnings
-
         warnings.warn(f"{where}: cotangent Laplacian has infinite weights (zero-area faces); using the robust "
                       f"Laplacian for this shape ({CLI_PREFIX}laplacian_fallback=false refuses such shapes)",
                       MeshWarning, stacklevel=2)
@@ -418,9 +441,13 @@ GEODESIC_SOURCES = ("ground_truth", "all")
 
 def _prepare_one(args) -> str:
     """Worker: load one mesh and fill its cache entries (runs in a separate process)."""
+    from shapecorr.data.validation import MeshWarning
+
     path, normalization, operators, cache_root, geodesics, sources, validation = args
     cache = ShapeCache(cache_root)
-    shape = load_mesh_cached(cache, Path(path), normalization, validation)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", MeshWarning)  # the calling process has loaded (and reported) every mesh
+        shape = load_mesh_cached(cache, Path(path), normalization, validation)
     verts, faces = shape.verts.numpy(), shape.faces.numpy()
     operators_with_fallback(cache, shape, operators, validation.laplacian_fallback)
     if geodesics and sources is None:
@@ -675,8 +702,6 @@ def read_pair_lines(path: str | os.PathLike) -> list[tuple[int, str, str]]:
         first_line[key] = lineno
         pairs.append((lineno, *key))
     if repeats:
-        import warnings
-
         warnings.warn(f"{path}: {len(repeats)} repeated pair(s) dropped, each pair is evaluated once: "
                       f"{'; '.join(repeats[:5])}{'; ...' if len(repeats) > 5 else ''}", DatasetWarning, stacklevel=2)
     if not pairs:

@@ -80,6 +80,8 @@ _INTEGER = re.compile(r"^[+-]?[0-9]+$")
 _TRIMESH_ERRORS = (ValueError, IndexError, KeyError, TypeError, AttributeError, EOFError, UnicodeDecodeError)
 # Bytes read at most to find the end of a PLY header.
 _PLY_HEADER_MAX_BYTES = 1 << 16
+# Bytes in which the 'OFF' keyword of an OFF file is looked for before the whole file is split into lines.
+_OFF_HEADER_PROBE_BYTES = 1 << 16
 
 
 # --------------------------------------------------------------------------------------------- meshes
@@ -89,8 +91,24 @@ def _fan_triangulate(polygon: list[int]) -> list[list[int]]:
     return [[polygon[0], polygon[i], polygon[i + 1]] for i in range(1, len(polygon) - 1)]
 
 
+def _check_off_keyword(path: Path, data: bytes) -> None:
+    """Refuse a file whose first data line is not an OFF header, reading only its first bytes.
+
+    So that a large file that is not OFF (a log, a CSV named ``.off``) is refused before it is split into lines.
+    """
+    head = data[:_OFF_HEADER_PROBE_BYTES].decode("utf-8", errors="replace")
+    for number, line in enumerate(head.splitlines(), start=1):
+        tokens = line.split("#", 1)[0].split()
+        if tokens:
+            if not _OFF_KEYWORD.match(tokens[0]):
+                raise MeshReadError(f"not an OFF file: line {number} starts with {tokens[0][:40]!r}, expected 'OFF'",
+                                    path)
+            return
+
+
 def _read_off(path: Path, data: bytes) -> tuple[np.ndarray, np.ndarray]:
     # Hand-written: see the module docstring for what trimesh's OFF reader gets wrong.
+    _check_off_keyword(path, data)
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as err:

@@ -58,6 +58,7 @@ from tqdm.auto import tqdm
 from shapecorr.data.cache import atomic_open
 from shapecorr.data.datasets import pair_name
 from shapecorr.data.ground_truth import ground_truth_indices
+from shapecorr.data.validation import MeshWarning
 from shapecorr.data.workers import process_pool, submit_all
 from shapecorr.errors import ConfigError, CorrespondenceError, InvalidMeshError, NumericalError
 from shapecorr.eval import metrics
@@ -678,6 +679,8 @@ def _init_worker(shapes, matcher, out_dir, settings, threads: int) -> None:
     # shapecorr.cli.evaluate) instead of each worker printing a traceback (already ignored from the start when
     # submitted with shapecorr.data.workers.submit_all).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # the calling process has loaded every mesh of the run and reported its warnings (ShapeDataset.prepare)
+    warnings.simplefilter("ignore", MeshWarning)
     torch.set_num_threads(threads)
     _WORKER = PairEvaluator(shapes, matcher, out_dir, settings)
 
