@@ -71,7 +71,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from shapecorr.cli.common import EXIT_INTERRUPTED, exit_on_user_error, user_config_error
+from shapecorr.cli.common import EXIT_INTERRUPTED, check_output_dir, exit_on_user_error, user_config_error
 from shapecorr.data.cache import atomic_open
 from shapecorr.data.datasets import PairDataset, pair_name
 from shapecorr.data.operators import required_request
@@ -434,7 +434,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
             from shapecorr.cli.pose_transfer import run_pose_transfer
 
             return run_pose_transfer(cfg)
-        out_dir = Path(str(cfg.output_dir))
+        out_dir = check_output_dir(Path(str(cfg.output_dir)), "output_dir=DIR")  # before any work
         device = resolve_device(str(cfg.device))
         rank, world = _init_distributed(device)
         matcher = build_matcher(cfg, device)

@@ -28,7 +28,7 @@ from omegaconf.errors import OmegaConfBaseException
 from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
 from pytorch_lightning.utilities.exceptions import MisconfigurationException
 
-from shapecorr.cli.common import exit_on_user_error, user_config_error
+from shapecorr.cli.common import check_output_dir, exit_on_user_error, user_config_error
 from shapecorr.data.operators import required_request
 from shapecorr.errors import ConfigError
 
@@ -133,7 +133,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         pairs, or None without ``test``), ``test_pairs``, ``output_dir``.
     """
     try:
-        out_dir = Path(str(cfg.paths.output_dir))
+        out_dir = check_output_dir(Path(str(cfg.paths.output_dir)), "paths.output_dir=DIR or hydra.run.dir=DIR")
         pl.seed_everything(int(cfg.seed), workers=True)
         ckpt_path = cfg.get("ckpt_path")
         if ckpt_path and not Path(str(ckpt_path)).is_file():
