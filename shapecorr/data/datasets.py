@@ -232,6 +232,13 @@ def find_mesh_files(root: Path) -> dict[str, Path]:
     """
     root = Path(root)
     if not root.is_dir():
+        if root.is_symlink() and not root.exists():
+            raise DatasetError("dataset folder is a symbolic link that loops or points nowhere "
+                               f"({_link_target(root)})", root)
+        if root.exists():
+            folder = root.parent.parent if root.parent.name in MESH_DIRS else root.parent
+            raise DatasetError(f"is a file, not a dataset folder: data.root must be the folder that holds "
+                               f"{'/ or '.join(MESH_DIRS)}/ (here perhaps data.root={folder})", root)
         raise DatasetError("dataset folder does not exist", root)
     mesh_dir = next((root / d for d in MESH_DIRS if (root / d).is_dir()), None)
     if mesh_dir is None:
@@ -239,6 +246,9 @@ def find_mesh_files(root: Path) -> dict[str, Path]:
     files: dict[str, Path] = {}
     skipped: list[str] = []
     for path in sorted(mesh_dir.iterdir()):
+        if path.suffix.lower() in MESH_EXTENSIONS and path.is_symlink() and not path.exists():
+            raise DatasetError(f"{path.name} is a symbolic link that loops or points nowhere ({_link_target(path)}); "
+                               "fix the link or remove it", mesh_dir)
         if path.suffix.lower() in MESH_EXTENSIONS and path.is_file():
             if path.stem in files:
                 raise DatasetError(f"two mesh files named {path.stem!r}: {files[path.stem].name} and {path.name}",
@@ -246,6 +256,10 @@ def find_mesh_files(root: Path) -> dict[str, Path]:
             files[path.stem] = path
         elif path.is_dir():
             skipped.append(f"{path.name}/ (a directory; sub-folders are not searched)")
+        elif path.is_symlink() and not path.exists():
+            skipped.append(f"{path.name} (a symbolic link that loops or points nowhere)")
+        elif path.suffix.lower() in MESH_EXTENSIONS:
+            skipped.append(f"{path.name} (not a regular file)")
         elif not path.name.startswith("."):
             skipped.append(f"{path.name} (not {'/'.join(MESH_EXTENSIONS)})")
     if skipped:
@@ -255,6 +269,14 @@ def find_mesh_files(root: Path) -> dict[str, Path]:
         extra = f"; skipped: {', '.join(skipped[:5])}" if skipped else ""
         raise DatasetError(f"no mesh files ({', '.join(MESH_EXTENSIONS)}) found{extra}", mesh_dir)
     return files
+
+
+def _link_target(path: Path) -> str:
+    """``-> <target>`` of a symbolic link, for messages."""
+    try:
+        return f"-> {os.readlink(path)}"
+    except OSError as err:
+        return f"unreadable link: {err.strerror}"
 
 
 class DatasetWarning(UserWarning):
@@ -431,9 +453,16 @@ def _compute_naming_the_file(cache: ShapeCache, verts, faces, operators: Operato
     except ShapeCorrError as err:
         if err.path is not None:
             raise
-        raise type(err)(err.problem, where) from None
+        problem = err.problem
+        if problem.startswith(EIGENBASIS_RANGE_ERROR):  # more eigenpairs requested than the mesh has
+            problem = (f"{Path(str(where)).stem} has {len(verts)} vertices, too few for the eigenpairs requested "
+                       f"({problem}): lower data.operators.n_eig, or the model's own eigenbasis size when it asks "
+                       "for more (its model.* options), or leave this shape out")
+        raise type(err)(problem, where) from None
 
 
+#: Start of the error of :func:`shapecorr.geometry.laplace_beltrami.eigenbasis` for more eigenpairs than vertices.
+EIGENBASIS_RANGE_ERROR = "eigenbasis needs 1 <= k <= n-1"
 #: What ``ShapeDataset.prepare(geodesics=...)`` caches: rows from the ground-truth points (what the
 #: evaluation needs, ``R x n``) or the all-pairs matrix (``n x n``).
 GEODESIC_SOURCES = ("ground_truth", "all")
