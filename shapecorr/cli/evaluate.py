@@ -73,7 +73,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from shapecorr.cli.common import EXIT_INTERRUPTED, check_output_dir, exit_on_user_error, user_config_error
 from shapecorr.data.cache import atomic_open
-from shapecorr.data.datasets import PairDataset, pair_name
+from shapecorr.data.datasets import PairDataset, check_pair_names, pair_name
 from shapecorr.data.operators import required_request
 from shapecorr.errors import ConfigError
 from shapecorr.eval import multi_shape, protocol, reports
@@ -478,6 +478,10 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     matching = matching_option(cfg, matcher)  # G-MSM: multi-shape matching over the split (new in issue 13)
     if matching is not None:
         fingerprint["matching"] = matching
+    if matching == "graph":  # refused before any query: every ordered pair is queried and scored on whole meshes
+        check_pair_names(((a, b) for a in shapes.names for b in shapes.names if a != b), shapes.root)
+        shapes.check_connected("multi-shape matching (matching=graph: cycle consistency over all-pairs geodesics)",
+                               "evaluate them with matching=pairwise, or remove the small pieces from the meshes")
     if rank == 0:
         _check_run_file(out_dir, fingerprint, bool(cfg.resume))
         # Fill the cache of every shape of the split once, in parallel, before any pair is evaluated.

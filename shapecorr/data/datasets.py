@@ -611,9 +611,34 @@ class ShapeDataset(Dataset):
         return torch.from_numpy(corres)
 
     def geodesics(self, i: int, method: str = "heat") -> np.ndarray:
-        """All-pairs geodesic distances ``(n, n)`` float32 of shape ``i`` (normalized units), cached."""
+        """All-pairs geodesic distances ``(n, n)`` float32 of shape ``i`` (normalized units), cached.
+
+        Only for connected meshes (see :meth:`check_connected`); errors name the shape's file.
+        """
         shape = self.load_shape(i)
-        return geodesics_cached(self.cache, shape.verts.numpy(), shape.faces.numpy(), method=method)
+        try:
+            return geodesics_cached(self.cache, shape.verts.numpy(), shape.faces.numpy(), method=method)
+        except ShapeCorrError as err:
+            if err.path is not None:
+                raise
+            raise type(err)(f"all-pairs geodesic distances: {err.problem}", self.paths[i]) from None
+
+    def check_connected(self, purpose: str, fix: str) -> None:
+        """Raise :class:`~shapecorr.errors.DatasetError` naming every shape with several connected components.
+
+        For computations that cannot handle them (``purpose``; ``fix`` says what to do instead), before any work.
+        """
+        from shapecorr.geometry.geodesics import vertex_components
+
+        found = []
+        for i in range(len(self)):
+            shape = self.load_shape(i)
+            n_components, _ = vertex_components(shape.n_verts, shape.faces.numpy())
+            if n_components > 1:
+                found.append(f"{self.paths[i]} ({n_components} components)")
+        if found:
+            raise DatasetError(f"{len(found)} shape(s) with several connected components, which {purpose} cannot "
+                               f"handle: {', '.join(found[:3])}{', ...' if len(found) > 3 else ''}; {fix}", self.root)
 
     def geodesic_sources(self, i: int) -> np.ndarray:
         """Sorted unique vertices of shape ``i`` that the evaluation needs geodesic rows from.
