@@ -709,8 +709,11 @@ class ShapeDataset(Dataset):
 
 
 def _pair_fields(line: str) -> list[str]:
-    """The names on a pair-file line: tab-separated fields when the line has a tab, else shell-like words split
-    at spaces or commas, with ``"..."`` / ``'...'`` quoting a name that contains them (no backslash escapes)."""
+    """The names on a pair-file line.
+
+    Tab-separated fields when the line has a tab, else shell-like words split at spaces or commas, with ``"..."`` /
+    ``'...'`` quoting a name that contains them (no backslash escapes).
+    """
     if "\t" in line:
         return [part.strip() for part in line.split("\t") if part.strip()]
     lexer = shlex.shlex(line, posix=True)
@@ -764,7 +767,7 @@ def read_pair_lines(path: str | os.PathLike) -> list[tuple[int, str, str]]:
 
 
 def read_pair_file(path: str | os.PathLike) -> list[tuple[str, str]]:
-    """Pairs of shape names of a pair list file (e.g. FAUST_r test_pairs.txt), each once; see :func:`read_pair_lines`."""
+    """Pairs of shape names of a pair list file (e.g. FAUST_r test_pairs.txt), each once (:func:`read_pair_lines`)."""
     return [(x, y) for _, x, y in read_pair_lines(path)]
 
 

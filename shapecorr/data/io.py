@@ -309,7 +309,7 @@ def read_mesh(
         data = path.read_bytes()
     except OSError as err:
         raise MeshReadError(f"cannot read file: {err.strerror or err}", path) from err
-    if not data.strip():
+    if not data or data.isspace():  # (no strip(): it would copy a large file)
         raise MeshReadError("file is empty", path)
 
     if extension == ".off":
