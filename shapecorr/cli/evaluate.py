@@ -45,9 +45,11 @@ Ctrl-C stops the run with one line: how many pairs are done and the command that
 options plus ``output_dir=OUT``, since the default output folder is new for every run); a resumed run prints
 ``resuming: N of M pairs done``.
 
-Resumption: ``OUT/run.json`` records what is evaluated (matcher, checkpoint or maps folder, dataset, split,
-geodesics, and the interpolation times of interpolating matchers); a re-run with the same ``output_dir``
-skips the pairs already done and refuses to mix results of a different run. DDP: launch with
+Resumption: ``OUT/run.json`` records what is evaluated and every setting that changes a number (matcher,
+checkpoint or maps folder, post-processing, interpolator, split, geodesics, conformal clamp, the interpolation
+times of interpolating matchers, and :func:`~shapecorr.eval.protocol.data_settings`: data folder, normalization,
+resolved operators, reference points, mesh validation); a re-run with the same ``output_dir`` skips the pairs
+already done and refuses, naming the differing keys, to mix results of a different run. DDP: launch with
 ``torchrun --nproc_per_node=N evaluate.py ...``; every rank evaluates every N-th pair into the same folder
 (a shared file system), then rank 0 writes the reports.
 """
