@@ -6,6 +6,7 @@ import errno
 import functools
 import sys
 import tempfile
+import threading
 from pathlib import Path
 from typing import Callable, TypeVar
 
@@ -33,6 +34,15 @@ def exit_on_user_error(fn: F) -> F:
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
+        previous_hook = threading.excepthook
+
+        def storage_fault_in_thread(args) -> None:  # e.g. TensorBoard's writer thread on a full disk: one line
+            if isinstance(args.exc_value, OSError) and args.exc_value.errno in STORAGE_ERRNOS:
+                print(f"error: {storage_error_message(args.exc_value)}", file=sys.stderr)
+                return
+            previous_hook(args)
+
+        threading.excepthook = storage_fault_in_thread
         try:
             return fn(*args, **kwargs)
         except ShapeCorrError as err:
@@ -47,6 +57,8 @@ def exit_on_user_error(fn: F) -> F:
                 raise
             print(f"error: {storage_error_message(err)}", file=sys.stderr)
             sys.exit(EXIT_INVALID_INPUT)
+        finally:
+            threading.excepthook = previous_hook
 
     return wrapper  # type: ignore[return-value]
 
@@ -69,7 +81,8 @@ def storage_error_message(err: OSError) -> str:
     where = f"{err.filename}: " if err.filename else ""
     fix = "free space" if err.errno in (errno.ENOSPC, errno.EDQUOT) else "make it writable"
     return (f"{where}{err.strerror or err} [errno {err.errno}]; finished results are kept (every file is written "
-            f"atomically): {fix}, or choose another output folder, and run the same command again to continue")
+            f"atomically): {fix} or choose another output folder, then continue (evaluate.py: the same command and "
+            "output_dir; train.py: ckpt_path=<run folder>/checkpoints/last.ckpt)")
 
 
 def check_output_dir(path: str | Path, option: str) -> Path:

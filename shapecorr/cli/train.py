@@ -152,6 +152,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         trainer.fit(model, datamodule=dm, ckpt_path=str(ckpt_path) if ckpt_path else None)
     except MisconfigurationException as err:  # options Lightning only checks once fitting starts
         raise ConfigError(f"invalid trainer or callback options: {err}") from None
+    except OSError as err:  # a storage fault in a logger or checkpoint writer that names no file: name the folder
+        if err.filename is None and err.errno is not None:
+            raise OSError(err.errno, err.strerror, str(out_dir)) from err
+        raise
     checkpoint = trainer.checkpoint_callback.last_model_path if trainer.checkpoint_callback else None
     result: dict[str, Any] = {"checkpoint": checkpoint or None, "test_error": None, "test_pairs": 0,
                               "output_dir": str(out_dir)}

@@ -153,10 +153,33 @@ def test_disk_full_during_the_run_stops_with_one_line_and_resumes(world, tmp_pat
 
     monkeypatch.setattr(protocol, "write_record", full_after_two)
     line = _error(world[2](out, *FAST), capsys)
-    assert "No space left on device [errno 28]" in line and "run the same command again" in line
+    assert "No space left on device [errno 28]" in line and "the same command and output_dir" in line
     monkeypatch.setattr(protocol, "write_record", real)
     result = evaluate(world[2](out, *FAST))
     assert result["n_pairs"] == 6 and "resuming: 2 of 6 pairs done" in capsys.readouterr().err
+
+
+def test_storage_fault_in_a_writer_thread_is_one_line(capsys):
+    """As TensorBoard's event writer on a full disk during train.py: the thread's fault and the run's, no traceback."""
+    import threading
+
+    from shapecorr.cli.common import exit_on_user_error
+
+    @exit_on_user_error
+    def run():
+        def writer():
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        thread = threading.Thread(target=writer)
+        thread.start()
+        thread.join()
+        raise OSError(errno.ENOSPC, "No space left on device", "/runs/x")
+
+    with pytest.raises(SystemExit) as stop:
+        run()
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "Traceback" not in err
+    assert err.count("error: ") == 2 and "error: /runs/x: No space left on device [errno 28]" in err
 
 
 @pytest.mark.parametrize("kind", ["a file", "under a file"])
