@@ -843,7 +843,11 @@ class PairDataset(Dataset):
             n = len(shapes)
             self.pairs = [(i, j) for i in range(n) for j in range(n) if include_self or i != j]
         else:
-            self.pairs = [(self._as_index(a), self._as_index(b)) for a, b in pairs]
+            listed = [(self._as_index(a), self._as_index(b)) for a, b in pairs]
+            self.pairs = list(dict.fromkeys(listed))  # each pair once, in the order listed
+            if len(self.pairs) < len(listed):
+                warnings.warn(f"{shapes.root}: {len(listed) - len(self.pairs)} repeated pair(s) of the pair list "
+                              "dropped, each pair is evaluated once", DatasetWarning, stacklevel=2)
         check_pair_names(((shapes.names[i], shapes.names[j]) for i, j in self.pairs), pair_file or shapes.root)
         if max_pairs is not None and len(self.pairs) > max_pairs:
             keep = np.linspace(0, len(self.pairs) - 1, max_pairs).round().astype(int)

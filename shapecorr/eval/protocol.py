@@ -56,7 +56,7 @@ import torch
 from tqdm.auto import tqdm
 
 from shapecorr.data.cache import atomic_open
-from shapecorr.data.datasets import pair_name
+from shapecorr.data.datasets import check_pair_names, pair_name
 from shapecorr.data.ground_truth import ground_truth_indices
 from shapecorr.data.validation import MeshWarning
 from shapecorr.data.workers import process_pool, submit_all
@@ -728,6 +728,7 @@ def evaluate_pairs(
     if workers > 0 and torch.device(settings.device).type != "cpu":
         raise ConfigError(f"parallel workers evaluate on the CPU only; use workers=0 with device={settings.device}")
     names = [(shapes.names[i], shapes.names[j]) for i, j in pairs]
+    check_pair_names(names, getattr(shapes, "root", None))  # two pairs must never share one record
     todo = [p for p, (a, b) in zip(pairs, names) if not is_done(out_dir, a, b)]
     # Grouping by target lets each process reuse the target's geodesic matrix across consecutive pairs.
     todo.sort(key=lambda p: (p[1], p[0]))

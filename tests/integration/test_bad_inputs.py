@@ -302,3 +302,5 @@ def test_pair_dataset_rejects_non_integer_max_pairs(world):
     with pytest.raises(DatasetError, match="line 1: no shape named 'zz'"):
         (world[0] / "bad_pairs.txt").write_text("zz a\n")
         PairDataset(shapes, pair_file="bad_pairs.txt")
+    with pytest.warns(DatasetWarning, match="1 repeated pair"):
+        assert PairDataset(shapes, pairs=[("a", "b"), ("b", "a"), ("a", "b")]).pairs == [(0, 1), (1, 0)]
