@@ -45,9 +45,11 @@ Ctrl-C stops the run with one line: how many pairs are done and the command that
 options plus ``output_dir=OUT``, since the default output folder is new for every run); a resumed run prints
 ``resuming: N of M pairs done``.
 
-Resumption: ``OUT/run.json`` records what is evaluated (matcher, checkpoint or maps folder, dataset, split,
-geodesics, and the interpolation times of interpolating matchers); a re-run with the same ``output_dir``
-skips the pairs already done and refuses to mix results of a different run. DDP: launch with
+Resumption: ``OUT/run.json`` records what is evaluated and every setting that changes a number (matcher,
+checkpoint or maps folder, post-processing, interpolator, split, geodesics, conformal clamp, the interpolation
+times of interpolating matchers, and :func:`~shapecorr.eval.protocol.data_settings`: data folder, normalization,
+resolved operators, reference points, mesh validation); a re-run with the same ``output_dir`` skips the pairs
+already done and refuses, naming the differing keys, to mix results of a different run. DDP: launch with
 ``torchrun --nproc_per_node=N evaluate.py ...``; every rank evaluates every N-th pair into the same folder
 (a shared file system), then rank 0 writes the reports.
 """
@@ -59,6 +61,7 @@ import json
 import os
 import platform
 import shutil
+import signal
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -70,9 +73,9 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from shapecorr.cli.common import EXIT_INTERRUPTED, exit_on_user_error, user_config_error
+from shapecorr.cli.common import EXIT_INTERRUPTED, check_output_dir, exit_on_user_error, user_config_error
 from shapecorr.data.cache import atomic_open
-from shapecorr.data.datasets import PairDataset, pair_name
+from shapecorr.data.datasets import PairDataset, check_pair_names, pair_name
 from shapecorr.data.operators import required_request
 from shapecorr.errors import ConfigError
 from shapecorr.eval import multi_shape, protocol, reports
@@ -116,7 +119,9 @@ def build_matcher(cfg: DictConfig, device: torch.device):
         one_based = cfg.get("maps_one_based")
         if one_based is not None and not isinstance(one_based, bool):
             raise ConfigError(f"maps_one_based must be true, false or null (not said), got {one_based!r}")
-        return PrecomputedMaps(cfg.maps_dir, one_based=one_based, extension=str(cfg.maps_extension))
+        # precomputed maps are a matcher like any other: refined (postprocess=) and interpolated (interpolator=)
+        matcher = PrecomputedMaps(cfg.maps_dir, one_based=one_based, extension=str(cfg.maps_extension))
+        return with_interpolator(cfg, apply_postprocess(cfg, matcher))
     if model_cfg is None:
         raise ConfigError("nothing to evaluate: give model=<name> (e.g. model=descriptor_nn) or maps_dir=DIR")
     if "_target_" not in model_cfg:
@@ -237,11 +242,12 @@ def _check_run_file(out_dir: Path, fingerprint: dict[str, Any], resume: bool) ->
             previous = json.loads(run_file.read_text())
         except (OSError, ValueError):
             previous = None
-        if previous != fingerprint:
-            changed = sorted(k for k in fingerprint if previous is None or previous.get(k) != fingerprint[k])
+        changes = protocol.fingerprint_changes(previous, fingerprint)
+        if changes:
+            shown = "; ".join(changes[:4]) + (f"; and {len(changes) - 4} more" if len(changes) > 4 else "")
             raise ConfigError(
-                f"holds results of a different evaluation (differs in: {', '.join(changed) or 'format'}); "
-                "use another output_dir, or resume=false to start over",
+                f"holds results of a different evaluation ({RUN_FILE} differs in {shown}); use another output_dir, "
+                "or resume=false to start over",
                 out_dir,
             )
         return
@@ -430,7 +436,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
             from shapecorr.cli.pose_transfer import run_pose_transfer
 
             return run_pose_transfer(cfg)
-        out_dir = Path(str(cfg.output_dir))
+        out_dir = check_output_dir(Path(str(cfg.output_dir)), "output_dir=DIR")  # before any work
         device = resolve_device(str(cfg.device))
         rank, world = _init_distributed(device)
         matcher = build_matcher(cfg, device)
@@ -462,10 +468,10 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
            if interpolator_config(cfg) is not None else {}),  # only when set: older run.json files still match
         "ckpt_path": str(cfg.ckpt_path) if cfg.get("ckpt_path") else None,
         "maps_dir": str(cfg.maps_dir) if cfg.get("maps_dir") else None,
-        "data_root": str(shapes.root.resolve()),
         "split": split,
         "geodesics": settings.geodesics,
-        "normalization": repr(shapes.normalization),
+        "conformal_clamp": settings.conformal_clamp,
+        **protocol.data_settings(shapes),  # every data setting that changes a number (operators, reference points)
     }
     if cfg.get("postprocess") is not None:
         fingerprint["postprocess"] = OmegaConf.to_container(cfg.postprocess, resolve=True)
@@ -474,6 +480,10 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     matching = matching_option(cfg, matcher)  # G-MSM: multi-shape matching over the split (new in issue 13)
     if matching is not None:
         fingerprint["matching"] = matching
+    if matching == "graph":  # refused before any query: every ordered pair is queried and scored on whole meshes
+        check_pair_names(((a, b) for a in shapes.names for b in shapes.names if a != b), shapes.root)
+        shapes.check_connected("multi-shape matching (matching=graph: cycle consistency over all-pairs geodesics)",
+                               "evaluate them with matching=pairwise, or remove the small pieces from the meshes")
     if rank == 0:
         _check_run_file(out_dir, fingerprint, bool(cfg.resume))
         # Fill the cache of every shape of the split once, in parallel, before any pair is evaluated.
@@ -501,6 +511,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
             progress=bool(cfg.progress) and rank == 0,
         )
     except KeyboardInterrupt:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # the workers are stopped; a second Ctrl-C must not cut the exit
         print(interrupted_message(out_dir, protocol.count_done(out_dir, names), len(pairs)), file=sys.stderr)
         sys.exit(EXIT_INTERRUPTED)
     _barrier()

@@ -28,7 +28,7 @@ from omegaconf.errors import OmegaConfBaseException
 from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
 from pytorch_lightning.utilities.exceptions import MisconfigurationException
 
-from shapecorr.cli.common import exit_on_user_error, user_config_error
+from shapecorr.cli.common import check_output_dir, exit_on_user_error, user_config_error
 from shapecorr.data.operators import required_request
 from shapecorr.errors import ConfigError
 
@@ -133,7 +133,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         pairs, or None without ``test``), ``test_pairs``, ``output_dir``.
     """
     try:
-        out_dir = Path(str(cfg.paths.output_dir))
+        out_dir = check_output_dir(Path(str(cfg.paths.output_dir)), "paths.output_dir=DIR or hydra.run.dir=DIR")
         pl.seed_everything(int(cfg.seed), workers=True)
         ckpt_path = cfg.get("ckpt_path")
         if ckpt_path and not Path(str(ckpt_path)).is_file():
@@ -152,6 +152,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         trainer.fit(model, datamodule=dm, ckpt_path=str(ckpt_path) if ckpt_path else None)
     except MisconfigurationException as err:  # options Lightning only checks once fitting starts
         raise ConfigError(f"invalid trainer or callback options: {err}") from None
+    except OSError as err:  # a storage fault in a logger or checkpoint writer that names no file: name the folder
+        if err.filename is None and err.errno is not None:
+            raise OSError(err.errno, err.strerror, str(out_dir)) from err
+        raise
     checkpoint = trainer.checkpoint_callback.last_model_path if trainer.checkpoint_callback else None
     result: dict[str, Any] = {"checkpoint": checkpoint or None, "test_error": None, "test_pairs": 0,
                               "output_dir": str(out_dir)}

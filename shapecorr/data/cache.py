@@ -117,7 +117,7 @@ def atomic_open(path: str | os.PathLike) -> Iterator[BinaryIO]:
     Raises
     ------
     OSError
-        The temp file cannot be created or renamed.
+        The temp file cannot be created, written or renamed; it names ``path`` when the failure named no file.
     """
     target = Path(path)
     tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex}{TEMP_SUFFIX}")
@@ -127,9 +127,12 @@ def atomic_open(path: str | os.PathLike) -> Iterator[BinaryIO]:
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp, target)
-    except BaseException:
+    except BaseException as err:
         with suppress(FileNotFoundError):
             tmp.unlink()
+        if isinstance(err, OSError) and err.filename is None and err.errno is not None:
+            # a failed write (e.g. disk full) names no file: name the one being written
+            raise OSError(err.errno, err.strerror, str(target)) from err
         raise
 
 

@@ -23,9 +23,9 @@ import hashlib
 import json
 import logging
 import os
-import re
+import shlex
+import warnings
 from collections.abc import Iterable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -47,12 +47,13 @@ from shapecorr.data.operators import (
 )
 from shapecorr.data.shape import Normalization, Shape
 from shapecorr.data.validation import CLI_PREFIX, ValidationOptions
+from shapecorr.data.workers import process_pool, submit_all
 from shapecorr.errors import ConfigError, DatasetError, InvalidMeshError, ShapeCorrError
 
 MESH_DIRS = ("off", "shapes")
 MESH_EXTENSIONS = (".off", ".ply", ".obj")
 #: Version of the cached, validated and normalized meshes (bump when reading/validation/normalization changes).
-MESH_CACHE_VERSION = 1
+MESH_CACHE_VERSION = 2
 #: Folder of the split files ``<split>.txt`` under a dataset root.
 SPLITS_DIR = "splits"
 
@@ -211,9 +212,13 @@ class PairSample:
         return PairSample(self.x.to(device), self.y.to(device))
 
 
+#: Joins the two shape names of a pair's output files (:func:`pair_name`).
+PAIR_SEPARATOR = "__"
+
+
 def pair_name(name_x: str, name_y: str) -> str:
-    """File-name stem of a pair's outputs: ``<x>__<y>``."""
-    return f"{name_x}__{name_y}"
+    """File-name stem of a pair's outputs: ``<x>__<y>`` (unambiguous within a run: :func:`check_pair_names`)."""
+    return f"{name_x}{PAIR_SEPARATOR}{name_y}"
 
 
 def find_mesh_files(root: Path) -> dict[str, Path]:
@@ -227,6 +232,13 @@ def find_mesh_files(root: Path) -> dict[str, Path]:
     """
     root = Path(root)
     if not root.is_dir():
+        if root.is_symlink() and not root.exists():
+            raise DatasetError("dataset folder is a symbolic link that loops or points nowhere "
+                               f"({_link_target(root)})", root)
+        if root.exists():
+            folder = root.parent.parent if root.parent.name in MESH_DIRS else root.parent
+            raise DatasetError(f"is a file, not a dataset folder: data.root must be the folder that holds "
+                               f"{'/ or '.join(MESH_DIRS)}/ (here perhaps data.root={folder})", root)
         raise DatasetError("dataset folder does not exist", root)
     mesh_dir = next((root / d for d in MESH_DIRS if (root / d).is_dir()), None)
     if mesh_dir is None:
@@ -234,6 +246,9 @@ def find_mesh_files(root: Path) -> dict[str, Path]:
     files: dict[str, Path] = {}
     skipped: list[str] = []
     for path in sorted(mesh_dir.iterdir()):
+        if path.suffix.lower() in MESH_EXTENSIONS and path.is_symlink() and not path.exists():
+            raise DatasetError(f"{path.name} is a symbolic link that loops or points nowhere ({_link_target(path)}); "
+                               "fix the link or remove it", mesh_dir)
         if path.suffix.lower() in MESH_EXTENSIONS and path.is_file():
             if path.stem in files:
                 raise DatasetError(f"two mesh files named {path.stem!r}: {files[path.stem].name} and {path.name}",
@@ -241,17 +256,27 @@ def find_mesh_files(root: Path) -> dict[str, Path]:
             files[path.stem] = path
         elif path.is_dir():
             skipped.append(f"{path.name}/ (a directory; sub-folders are not searched)")
+        elif path.is_symlink() and not path.exists():
+            skipped.append(f"{path.name} (a symbolic link that loops or points nowhere)")
+        elif path.suffix.lower() in MESH_EXTENSIONS:
+            skipped.append(f"{path.name} (not a regular file)")
         elif not path.name.startswith("."):
             skipped.append(f"{path.name} (not {'/'.join(MESH_EXTENSIONS)})")
     if skipped:
-        import warnings
-
         warnings.warn(f"{mesh_dir}: skipped {len(skipped)} entr{'y' if len(skipped) == 1 else 'ies'}: "
                       f"{', '.join(skipped[:5])}{', ...' if len(skipped) > 5 else ''}", DatasetWarning, stacklevel=2)
     if not files:
         extra = f"; skipped: {', '.join(skipped[:5])}" if skipped else ""
         raise DatasetError(f"no mesh files ({', '.join(MESH_EXTENSIONS)}) found{extra}", mesh_dir)
     return files
+
+
+def _link_target(path: Path) -> str:
+    """``-> <target>`` of a symbolic link, for messages."""
+    try:
+        return f"-> {os.readlink(path)}"
+    except OSError as err:
+        return f"unreadable link: {err.strerror}"
 
 
 class DatasetWarning(UserWarning):
@@ -309,30 +334,50 @@ def select_names(
     return chosen
 
 
+def file_sha256(path: Path) -> str | None:
+    """SHA-256 (64 hex digits) of a file's bytes, read in blocks; None when it cannot be read."""
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as handle:
+            for block in iter(lambda: handle.read(_HASH_BLOCK_BYTES), b""):
+                digest.update(block)
+    except OSError:
+        return None
+    return digest.hexdigest()
+
+
+#: Block size of :func:`file_sha256` (hashing a 5k-vertex OFF file, ~0.3 MB, takes ~1 ms).
+_HASH_BLOCK_BYTES = 1 << 20
+
+
+def _without_prefix(message: str, prefix: str) -> str:
+    return message[len(prefix):] if message.startswith(prefix) else message
+
+
 def load_mesh_cached(
     cache: ShapeCache, path: Path, normalization: Normalization, validation: ValidationOptions | None = None
 ) -> Shape:
     """:func:`~shapecorr.data.io.load_shape` through the cache.
 
     Parsing and validating a 5k-vertex mesh file costs ~0.1-0.25 s, ten times more than reading its cached
-    operators; so the validated, normalized mesh is cached too, keyed by the file's resolved path, size and
-    modification time (any change of the file is a miss) and the normalization.
+    operators; so the validated, normalized mesh is cached too, keyed by the SHA-256 of the file's bytes (any edit
+    is a miss, whatever its size and modification time), the normalization and the validation options. The mesh
+    warnings of the file (:class:`~shapecorr.data.validation.MeshWarning`: components, non-manifold, duplicate or
+    degenerate faces) are kept in the entry and emitted again on every load, naming the file.
     """
-    stat = path.stat()
+    from shapecorr.data.validation import MeshWarning
+
     validation = ValidationOptions() if validation is None else validation
-    identity = {"path": str(path.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
-    params = {**identity, "normalization": asdict(normalization)}
-    if validation != ValidationOptions():  # the defaults keep the keys of existing cache entries
-        params["validation"] = asdict(validation)
-    key = CacheKey(
-        "mesh",
-        hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest(),
-        params,
-        MESH_CACHE_VERSION,
-        keep_float64=True,
-    )
+    digest = file_sha256(path)
+    if digest is None:  # unreadable or missing: load_shape names the problem
+        return load_shape(path, normalization=normalization, validation=validation)
+    params = {"file_sha256": digest, "normalization": asdict(normalization), "validation": asdict(validation)}
+    key = CacheKey("mesh", digest, params, MESH_CACHE_VERSION, keep_float64=True)
+    prefix = f"{path}: "
     hit = cache.get(key)
     if hit is not None:
+        for message in json.loads(hit["warnings"].tobytes().decode("utf-8")):
+            warnings.warn(prefix + message, MeshWarning, stacklevel=2)
         return Shape(
             verts=torch.from_numpy(hit["verts"].astype(np.float32)),
             faces=torch.from_numpy(hit["faces"].astype(np.int64)),
@@ -341,10 +386,16 @@ def load_mesh_cached(
             scale=float(hit["scale"][0]),
             offset=hit["offset"].astype(np.float64),
         )
-    shape = load_shape(path, normalization=normalization, validation=validation)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        shape = load_shape(path, normalization=normalization, validation=validation)
+    for w in caught:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+    messages = [_without_prefix(str(w.message), prefix) for w in caught if issubclass(w.category, MeshWarning)]
     if cache.writable:
         cache.put(key, {"verts": shape.verts.numpy(), "faces": shape.faces.numpy(),
-                        "scale": np.array([shape.scale]), "offset": np.asarray(shape.offset, np.float64)})
+                        "scale": np.array([shape.scale]), "offset": np.asarray(shape.offset, np.float64),
+                        "warnings": np.frombuffer(json.dumps(messages).encode("utf-8"), dtype=np.uint8)})
     return shape
 
 
@@ -389,8 +440,6 @@ def operators_with_fallback(cache: ShapeCache, shape: Shape, operators: Operator
             raise InvalidMeshError(
                 f"{err.problem}; set {CLI_PREFIX}laplacian_fallback=true (robust Laplacian for such shapes) or "
                 "data.operators.laplacian=robust (for every shape)", where) from None
-        import warnings
-
         warnings.warn(f"{where}: cotangent Laplacian has infinite weights (zero-area faces); using the robust "
                       f"Laplacian for this shape ({CLI_PREFIX}laplacian_fallback=false refuses such shapes)",
                       MeshWarning, stacklevel=2)
@@ -404,9 +453,16 @@ def _compute_naming_the_file(cache: ShapeCache, verts, faces, operators: Operato
     except ShapeCorrError as err:
         if err.path is not None:
             raise
-        raise type(err)(err.problem, where) from None
+        problem = err.problem
+        if problem.startswith(EIGENBASIS_RANGE_ERROR):  # more eigenpairs requested than the mesh has
+            problem = (f"{Path(str(where)).stem} has {len(verts)} vertices, too few for the eigenpairs requested "
+                       f"({problem}): lower data.operators.n_eig, or the model's own eigenbasis size when it asks "
+                       "for more (its model.* options), or leave this shape out")
+        raise type(err)(problem, where) from None
 
 
+#: Start of the error of :func:`shapecorr.geometry.laplace_beltrami.eigenbasis` for more eigenpairs than vertices.
+EIGENBASIS_RANGE_ERROR = "eigenbasis needs 1 <= k <= n-1"
 #: What ``ShapeDataset.prepare(geodesics=...)`` caches: rows from the ground-truth points (what the
 #: evaluation needs, ``R x n``) or the all-pairs matrix (``n x n``).
 GEODESIC_SOURCES = ("ground_truth", "all")
@@ -414,9 +470,13 @@ GEODESIC_SOURCES = ("ground_truth", "all")
 
 def _prepare_one(args) -> str:
     """Worker: load one mesh and fill its cache entries (runs in a separate process)."""
+    from shapecorr.data.validation import MeshWarning
+
     path, normalization, operators, cache_root, geodesics, sources, validation = args
     cache = ShapeCache(cache_root)
-    shape = load_mesh_cached(cache, Path(path), normalization, validation)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", MeshWarning)  # the calling process has loaded (and reported) every mesh
+        shape = load_mesh_cached(cache, Path(path), normalization, validation)
     verts, faces = shape.verts.numpy(), shape.faces.numpy()
     operators_with_fallback(cache, shape, operators, validation.laplacian_fallback)
     if geodesics and sources is None:
@@ -551,9 +611,34 @@ class ShapeDataset(Dataset):
         return torch.from_numpy(corres)
 
     def geodesics(self, i: int, method: str = "heat") -> np.ndarray:
-        """All-pairs geodesic distances ``(n, n)`` float32 of shape ``i`` (normalized units), cached."""
+        """All-pairs geodesic distances ``(n, n)`` float32 of shape ``i`` (normalized units), cached.
+
+        Only for connected meshes (see :meth:`check_connected`); errors name the shape's file.
+        """
         shape = self.load_shape(i)
-        return geodesics_cached(self.cache, shape.verts.numpy(), shape.faces.numpy(), method=method)
+        try:
+            return geodesics_cached(self.cache, shape.verts.numpy(), shape.faces.numpy(), method=method)
+        except ShapeCorrError as err:
+            if err.path is not None:
+                raise
+            raise type(err)(f"all-pairs geodesic distances: {err.problem}", self.paths[i]) from None
+
+    def check_connected(self, purpose: str, fix: str) -> None:
+        """Raise :class:`~shapecorr.errors.DatasetError` naming every shape with several connected components.
+
+        For computations that cannot handle them (``purpose``; ``fix`` says what to do instead), before any work.
+        """
+        from shapecorr.geometry.geodesics import vertex_components
+
+        found = []
+        for i in range(len(self)):
+            shape = self.load_shape(i)
+            n_components, _ = vertex_components(shape.n_verts, shape.faces.numpy())
+            if n_components > 1:
+                found.append(f"{self.paths[i]} ({n_components} components)")
+        if found:
+            raise DatasetError(f"{len(found)} shape(s) with several connected components, which {purpose} cannot "
+                               f"handle: {', '.join(found[:3])}{', ...' if len(found) > 3 else ''}; {fix}", self.root)
 
     def geodesic_sources(self, i: int) -> np.ndarray:
         """Sorted unique vertices of shape ``i`` that the evaluation needs geodesic rows from.
@@ -613,31 +698,112 @@ class ShapeDataset(Dataset):
             for job in tqdm(jobs, desc=desc, unit="shape", disable=not progress):
                 _prepare_one(job)
             return
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            for _ in tqdm(pool.map(_prepare_one, jobs), total=len(jobs), desc=desc, unit="shape", disable=not progress):
-                pass
+        # Ctrl-C: the workers are stopped at once (shapecorr.data.workers); finished cache entries are kept
+        with process_pool(workers) as pool:
+            for future in tqdm(submit_all(pool, _prepare_one, [(job,) for job in jobs]), total=len(jobs), desc=desc,
+                               unit="shape", disable=not progress):
+                future.result()
 
     def __repr__(self) -> str:
         return f"ShapeDataset(root={str(self.root)!r}, split={self.split!r}, n_shapes={len(self)})"
 
 
-def read_pair_file(path: str | os.PathLike) -> list[tuple[str, str]]:
-    """Pairs of shape names, one pair per line separated by tabs, commas or spaces (e.g. FAUST_r test_pairs.txt)."""
+def _pair_fields(line: str) -> list[str]:
+    """The names on a pair-file line.
+
+    Tab-separated fields when the line has a tab, else shell-like words split at spaces or commas, with ``"..."`` /
+    ``'...'`` quoting a name that contains them (no backslash escapes).
+    """
+    if "\t" in line:
+        return [part.strip() for part in line.split("\t") if part.strip()]
+    lexer = shlex.shlex(line, posix=True)
+    lexer.whitespace, lexer.whitespace_split, lexer.commenters, lexer.escape = " ,", True, "", ""
+    return list(lexer)
+
+
+def read_pair_lines(path: str | os.PathLike) -> list[tuple[int, str, str]]:
+    """``(line number, x, y)`` of every pair of a pair list file, each pair once.
+
+    One pair per line: two shape names separated by a tab (names may then contain spaces), or by spaces or commas
+    (a name with spaces or commas in double or single quotes). Blank lines and lines starting with ``#`` are
+    skipped. A pair listed again is dropped with one :class:`DatasetWarning` naming the lines (it would otherwise
+    be scored twice).
+
+    Raises
+    ------
+    DatasetError
+        Missing file, a line without exactly two names (or with an unclosed quote), no pair at all; the message
+        names the file and the line.
+    """
     path = Path(path)
     if not path.is_file():
-        raise DatasetError("pair list file does not exist", path)
-    pairs = []
+        raise DatasetError("pair list file does not exist" if not path.exists() else "is not a pair list file", path)
+    pairs: list[tuple[int, str, str]] = []
+    first_line: dict[tuple[str, str], int] = {}
+    repeats: list[str] = []
     for lineno, line in enumerate(path.read_text(errors="surrogateescape").splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
-        parts = [p for p in re.split(r"[\t, ]+", line) if p]
+        try:
+            parts = _pair_fields(line)
+        except ValueError as err:  # an unclosed quote
+            raise DatasetError(f"line {lineno}: {err} in {line[:80]!r}", path) from None
         if len(parts) != 2:
-            raise DatasetError(f"line {lineno}: expected two shape names, got {line!r}", path)
-        pairs.append((parts[0], parts[1]))
+            raise DatasetError(f"line {lineno}: expected two shape names, got {len(parts)} in {line[:80]!r} (separate "
+                               "them by a tab, or quote a name with spaces: \"my shape\" other)", path)
+        key = (parts[0], parts[1])
+        if key in first_line:
+            repeats.append(f"line {lineno} repeats line {first_line[key]} ({key[0]}, {key[1]})")
+            continue
+        first_line[key] = lineno
+        pairs.append((lineno, *key))
+    if repeats:
+        warnings.warn(f"{path}: {len(repeats)} repeated pair(s) dropped, each pair is evaluated once: "
+                      f"{'; '.join(repeats[:5])}{'; ...' if len(repeats) > 5 else ''}", DatasetWarning, stacklevel=2)
     if not pairs:
         raise DatasetError("pair list file lists no pair", path)
     return pairs
+
+
+def read_pair_file(path: str | os.PathLike) -> list[tuple[str, str]]:
+    """Pairs of shape names of a pair list file (e.g. FAUST_r test_pairs.txt), each once (:func:`read_pair_lines`)."""
+    return [(x, y) for _, x, y in read_pair_lines(path)]
+
+
+def ambiguous_pair_names(pairs: Iterable[tuple[str, str]]) -> tuple[tuple[str, str], tuple[str, str]] | None:
+    """Two different pairs of ``pairs`` (name tuples) whose output files would share a name, or None.
+
+    Records and maps of a pair are named :func:`pair_name` ``<x>__<y>``: with shapes ``p``, ``p__q``, ``r`` and
+    ``q__r`` the pairs (p__q, r) and (p, q__r) are both ``p__q__r``.
+    """
+    seen: dict[str, tuple[str, str]] = {}
+    for x, y in pairs:
+        other = seen.setdefault(pair_name(x, y), (x, y))
+        if other != (x, y):
+            return other, (x, y)
+    return None
+
+
+def check_pair_names(pairs: Iterable[tuple[str, str]], where: str | os.PathLike | None = None) -> None:
+    """Raise :class:`~shapecorr.errors.DatasetError` when two of ``pairs`` would share their output files."""
+    clash = ambiguous_pair_names(pairs)
+    if clash is not None:
+        (a, b), (c, d) = clash
+        raise DatasetError(
+            f"the pairs ({a}, {b}) and ({c}, {d}) would share their output files {pair_name(a, b)}.* (shape names "
+            f"are joined by '{PAIR_SEPARATOR}'): rename the shapes so that no name holds '{PAIR_SEPARATOR}', or "
+            "evaluate only one of these pairs", where)
+
+
+def check_max_pairs(max_pairs: Any) -> int | None:
+    """``max_pairs`` as an int >= 1, or None (all pairs); anything else raises ConfigError."""
+    if max_pairs is None:
+        return None
+    if isinstance(max_pairs, bool) or not isinstance(max_pairs, (int, np.integer)) or max_pairs < 1:
+        raise ConfigError(f"max_pairs must be a positive number of pairs or null (all pairs), got {max_pairs!r} "
+                          "(evaluate.py max_pairs=N, or data.pairs.<split>.max_pairs in the data config)")
+    return int(max_pairs)
 
 
 class PairDataset(Dataset):
@@ -667,16 +833,22 @@ class PairDataset(Dataset):
         max_pairs: int | None = None,
     ):
         self.shapes = shapes
+        max_pairs = check_max_pairs(max_pairs)
         if pair_file is not None:
             in_root = Path(shapes.root) / pair_file
             if not Path(pair_file).is_absolute() and not Path(pair_file).exists() and in_root.is_file():
                 pair_file = in_root
-            pairs = read_pair_file(pair_file)
-        if pairs is None:
+            self.pairs = [self._pair_of_line(pair_file, lineno, a, b) for lineno, a, b in read_pair_lines(pair_file)]
+        elif pairs is None:
             n = len(shapes)
             self.pairs = [(i, j) for i in range(n) for j in range(n) if include_self or i != j]
         else:
-            self.pairs = [(self._as_index(a), self._as_index(b)) for a, b in pairs]
+            listed = [(self._as_index(a), self._as_index(b)) for a, b in pairs]
+            self.pairs = list(dict.fromkeys(listed))  # each pair once, in the order listed
+            if len(self.pairs) < len(listed):
+                warnings.warn(f"{shapes.root}: {len(listed) - len(self.pairs)} repeated pair(s) of the pair list "
+                              "dropped, each pair is evaluated once", DatasetWarning, stacklevel=2)
+        check_pair_names(((shapes.names[i], shapes.names[j]) for i, j in self.pairs), pair_file or shapes.root)
         if max_pairs is not None and len(self.pairs) > max_pairs:
             keep = np.linspace(0, len(self.pairs) - 1, max_pairs).round().astype(int)
             self.pairs = [self.pairs[k] for k in keep]
@@ -685,6 +857,12 @@ class PairDataset(Dataset):
                 f"the pair list is empty: the split has {len(shapes)} shape(s) ({', '.join(shapes.names[:3])}) and "
                 "self-pairs are off; a pair needs two shapes (meshes directly inside off/ or shapes/; sub-folders "
                 "are not searched)", shapes.root)
+
+    def _pair_of_line(self, path, lineno: int, a: str, b: str) -> tuple[int, int]:
+        try:
+            return self._as_index(a), self._as_index(b)
+        except DatasetError as err:
+            raise DatasetError(f"line {lineno}: {err.problem} (dataset folder {err.path})", path) from None
 
     def _as_index(self, item: int | str) -> int:
         if isinstance(item, str):

@@ -43,6 +43,7 @@ All readers return zero-based int64 arrays; all writers take zero-based arrays.
 
 from __future__ import annotations
 
+import json
 import re
 from collections import Counter
 from os import PathLike
@@ -79,6 +80,8 @@ _INTEGER = re.compile(r"^[+-]?[0-9]+$")
 _TRIMESH_ERRORS = (ValueError, IndexError, KeyError, TypeError, AttributeError, EOFError, UnicodeDecodeError)
 # Bytes read at most to find the end of a PLY header.
 _PLY_HEADER_MAX_BYTES = 1 << 16
+# Bytes in which the 'OFF' keyword of an OFF file is looked for before the whole file is split into lines.
+_OFF_HEADER_PROBE_BYTES = 1 << 16
 
 
 # --------------------------------------------------------------------------------------------- meshes
@@ -88,8 +91,24 @@ def _fan_triangulate(polygon: list[int]) -> list[list[int]]:
     return [[polygon[0], polygon[i], polygon[i + 1]] for i in range(1, len(polygon) - 1)]
 
 
+def _check_off_keyword(path: Path, data: bytes) -> None:
+    """Refuse a file whose first data line is not an OFF header, reading only its first bytes.
+
+    So that a large file that is not OFF (a log, a CSV named ``.off``) is refused before it is split into lines.
+    """
+    head = data[:_OFF_HEADER_PROBE_BYTES].decode("utf-8", errors="replace")
+    for number, line in enumerate(head.splitlines(), start=1):
+        tokens = line.split("#", 1)[0].split()
+        if tokens:
+            if not _OFF_KEYWORD.match(tokens[0]):
+                raise MeshReadError(f"not an OFF file: line {number} starts with {tokens[0][:40]!r}, expected 'OFF'",
+                                    path)
+            return
+
+
 def _read_off(path: Path, data: bytes) -> tuple[np.ndarray, np.ndarray]:
     # Hand-written: see the module docstring for what trimesh's OFF reader gets wrong.
+    _check_off_keyword(path, data)
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as err:
@@ -290,7 +309,7 @@ def read_mesh(
         data = path.read_bytes()
     except OSError as err:
         raise MeshReadError(f"cannot read file: {err.strerror or err}", path) from err
-    if not data.strip():
+    if not data or data.isspace():  # (no strip(): it would copy a large file)
         raise MeshReadError("file is empty", path)
 
     if extension == ".off":
@@ -485,6 +504,43 @@ def write_vts(path: str | PathLike, idx_zero_based: np.ndarray) -> None:
 
 #: The evaluate.py option that says whether map files are one-based (named in every map-index error).
 MAPS_ONE_BASED_OPTION = "maps_one_based"
+
+
+#: File that ``evaluate.py`` writes beside its maps (``maps/``): it says the index base, so ``maps_dir=`` reads the
+#: folder without ``maps_one_based``.
+MAPS_MARKER = "maps.json"
+
+
+def write_maps_marker(folder: str | PathLike) -> Path:
+    """Write :data:`MAPS_MARKER` in ``folder`` (once): its ``.txt`` / ``.npy`` maps are zero-based."""
+    path = Path(folder) / MAPS_MARKER
+    if not path.is_file():
+        content = {"index_base": 0, "layout": "<x>__<y>.txt (one target vertex per line) and <x>__<y>.npy (int64)",
+                   "written_by": "shapecorr evaluate.py"}
+        with atomic_open(path) as handle:
+            handle.write((json.dumps(content, indent=1) + "\n").encode("ascii"))
+    return path
+
+
+def maps_marker_one_based(folder: str | PathLike) -> bool | None:
+    """The index base that ``folder``'s :data:`MAPS_MARKER` declares (True: one-based), or None without a marker.
+
+    Raises
+    ------
+    CorrespondenceError
+        The marker exists but is unreadable or declares another base than 0 or 1.
+    """
+    path = Path(folder) / MAPS_MARKER
+    if not path.is_file():
+        return None
+    try:
+        base = json.loads(path.read_text())["index_base"]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise CorrespondenceError(f"unreadable maps marker ({type(err).__name__}: {err}); delete it and set "
+                                  f"{MAPS_ONE_BASED_OPTION}=true|false", path) from None
+    if base not in (0, 1) or isinstance(base, bool):
+        raise CorrespondenceError(f"index_base must be 0 or 1, got {base!r}", path)
+    return base == 1
 
 
 def read_map(

@@ -4,6 +4,7 @@ Layout under an output folder (docs/evaluation.md §6; issue 6 for the ``interp`
 
     maps/<x>__<y>.txt               one zero-based target index per line, one line per source vertex
     maps/<x>__<y>.npy               the same map as an int64 array
+    maps/maps.json                  says the maps are zero-based (``maps_dir=`` reads the folder without flags)
     interp/<x>__<y>/t_XX.ply        frame XX (two digits, zero-based, more digits from 100 frames on) of an
                                     interpolation of x towards y, in the input units of x
     interp/<x>__<y>/times.txt       the time of each frame, line XX for t_XX.ply (shortest round-trip decimals)
@@ -63,13 +64,14 @@ def write_map_files(out_dir: str | os.PathLike, name_x: str, name_y: str, p2p) -
     -------
     (txt_path, npy_path)
     """
-    from shapecorr.data.io import write_map
+    from shapecorr.data.io import write_map, write_maps_marker
 
     p2p = np.asarray(p2p.detach().cpu().numpy() if hasattr(p2p, "detach") else p2p)
     if p2p.ndim != 1 or not np.issubdtype(p2p.dtype, np.integer):
         raise CorrespondenceError(f"a map must be a 1-D integer array, got {p2p.dtype} of shape {p2p.shape}")
     txt, npy = map_paths(out_dir, name_x, name_y)
     txt.parent.mkdir(parents=True, exist_ok=True)
+    write_maps_marker(txt.parent)  # maps_dir=<this folder> then reads them without maps_one_based
     write_map(txt, p2p.astype(np.int64), one_based=False)
     _atomic_save_npy(npy, p2p.astype(np.int64))
     return txt, npy

@@ -46,7 +46,7 @@ import os
 import time
 import warnings
 from collections import OrderedDict
-from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_EXCEPTION, wait
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Sequence
@@ -56,8 +56,10 @@ import torch
 from tqdm.auto import tqdm
 
 from shapecorr.data.cache import atomic_open
-from shapecorr.data.datasets import pair_name
+from shapecorr.data.datasets import check_pair_names, pair_name
 from shapecorr.data.ground_truth import ground_truth_indices
+from shapecorr.data.validation import MeshWarning
+from shapecorr.data.workers import process_pool, submit_all
 from shapecorr.errors import ConfigError, CorrespondenceError, InvalidMeshError, NumericalError
 from shapecorr.eval import metrics
 from shapecorr.eval.export import write_map_files, write_sequence
@@ -673,9 +675,12 @@ def _init_worker(shapes, matcher, out_dir, settings, threads: int) -> None:
     global _WORKER
     import signal
 
-    # Ctrl-C reaches the whole process group: the parent stops the run (one line, see shapecorr.cli.evaluate);
-    # the workers finish their current pair instead of each printing a traceback.
+    # Ctrl-C reaches the whole process group: the parent stops the workers and the run (one line, see
+    # shapecorr.cli.evaluate) instead of each worker printing a traceback (already ignored from the start when
+    # submitted with shapecorr.data.workers.submit_all).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # the calling process has loaded every mesh of the run and reported its warnings (ShapeDataset.prepare)
+    warnings.simplefilter("ignore", MeshWarning)
     torch.set_num_threads(threads)
     _WORKER = PairEvaluator(shapes, matcher, out_dir, settings)
 
@@ -723,6 +728,7 @@ def evaluate_pairs(
     if workers > 0 and torch.device(settings.device).type != "cpu":
         raise ConfigError(f"parallel workers evaluate on the CPU only; use workers=0 with device={settings.device}")
     names = [(shapes.names[i], shapes.names[j]) for i, j in pairs]
+    check_pair_names(names, getattr(shapes, "root", None))  # two pairs must never share one record
     todo = [p for p, (a, b) in zip(pairs, names) if not is_done(out_dir, a, b)]
     # Grouping by target lets each process reuse the target's geodesic matrix across consecutive pairs.
     todo.sort(key=lambda p: (p[1], p[0]))
@@ -738,25 +744,17 @@ def evaluate_pairs(
             # honours OMP_NUM_THREADS): oversubscribed OpenMP threads spin and slow everything down
             threads = max(1, min(torch.get_num_threads(), (os.cpu_count() or 1) // workers))
             ctx = multiprocessing.get_context(start_method)
-            with ProcessPoolExecutor(
-                max_workers=min(workers, len(todo)),
-                mp_context=ctx,
-                initializer=_init_worker,
-                initargs=(shapes, matcher, str(out_dir), settings, threads),
-            ) as pool:
-                pending = {pool.submit(_run_in_worker, i, j) for i, j in todo}
-                try:
-                    while pending:
-                        done, pending = wait(pending, return_when=FIRST_EXCEPTION)
-                        for future in done:
-                            if future.exception() is not None:
-                                for other in pending:
-                                    other.cancel()
-                                raise future.exception()
-                            bar.update()
-                except KeyboardInterrupt:
-                    pool.shutdown(wait=False, cancel_futures=True)  # running pairs finish, queued ones are dropped
-                    raise
+            # Ctrl-C: the workers ignore it and are terminated at once (shapecorr.data.workers); the pairs they
+            # were running are lost (their files are written atomically), the finished ones are kept
+            with process_pool(min(workers, len(todo)), ctx, _init_worker,
+                              (shapes, matcher, str(out_dir), settings, threads)) as pool:
+                pending = set(submit_all(pool, _run_in_worker, todo))
+                while pending:
+                    done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+                    for future in done:
+                        if future.exception() is not None:
+                            raise future.exception()
+                        bar.update()
     finally:
         bar.close()
     return [load_record(out_dir, a, b)[0] for a, b in names]
@@ -799,3 +797,52 @@ def shard_pairs(pairs: Sequence[Any], rank: int, world_size: int) -> list[Any]:
         raise ConfigError(f"invalid shard: rank {rank} of world size {world_size}")
     return list(pairs[rank::world_size])
 
+
+
+# --------------------------------------------------------------------------------------------------------
+# Run identity (resuming an output folder)
+# --------------------------------------------------------------------------------------------------------
+def data_settings(shapes) -> dict[str, Any]:
+    """The settings of a :class:`~shapecorr.data.datasets.ShapeDataset` that change an evaluation's numbers.
+
+    Folder, normalization, the resolved parameters of every operator it provides (``data.operators.*`` merged with
+    the matcher's request), ``data.reference_points`` and ``data.validation.*``: part of ``run.json``, so that a
+    resumed run never averages pairs computed with different settings.
+    """
+    return {
+        "data_root": str(Path(shapes.root).resolve()),
+        "normalization": repr(shapes.normalization),
+        "operators": shapes.operators.resolve(),
+        "reference_points": shapes.reference_points,
+        "validation": asdict(shapes.validation),
+    }
+
+
+def _flat(value: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(value, dict) and value:
+        out: dict[str, Any] = {}
+        for key, item in value.items():
+            out.update(_flat(item, f"{prefix}.{key}" if prefix else str(key)))
+        return out
+    return {prefix: value}
+
+
+def fingerprint_changes(previous: Any, current: dict[str, Any]) -> list[str]:
+    """``["key: old -> new", ...]`` for every setting (dotted keys, sorted) that differs between two run records.
+
+    ``previous`` is the parsed ``run.json`` (anything else, e.g. None for an unreadable file, differs in every
+    key); ``current`` is compared as JSON stores it (tuples are lists). Missing keys show as ``(unset)``.
+    """
+    current = json.loads(json.dumps(current))
+    old, new = _flat(previous if isinstance(previous, dict) else {}), _flat(current)
+    changes = []
+    for key in sorted(set(old) | set(new)):
+        if old.get(key, _UNSET) != new.get(key, _UNSET):
+            show = [_UNSET_TEXT if v is _UNSET else json.dumps(v)[:60] for v in (old.get(key, _UNSET),
+                                                                                 new.get(key, _UNSET))]
+            changes.append(f"{key}: {show[0]} -> {show[1]}")
+    return changes
+
+
+_UNSET = object()
+_UNSET_TEXT = "(unset)"

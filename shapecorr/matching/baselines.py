@@ -164,7 +164,8 @@ class PrecomputedMaps:
         Folder of map files.
     one_based : bool or None
         Indices start at 1 (``.map`` / ``.vts``-style files) instead of 0 (shapecorr's ``.txt``). None (not
-        said): a file that never uses index 0 is refused with a message asking for ``maps_one_based``
+        said): the folder's ``maps.json`` decides (written by ``evaluate.py`` beside its zero-based maps), else a
+        file that never uses index 0 is refused with a message asking for ``maps_one_based``
         (:func:`shapecorr.data.io.read_map`).
     extension : str
         File extension without the dot: ``txt`` / ``map`` / ``vts`` (text, one index per line) or ``npy``
@@ -178,7 +179,14 @@ class PrecomputedMaps:
         self.maps_dir = Path(maps_dir)
         if not self.maps_dir.is_dir():
             raise CorrespondenceError("maps folder does not exist", self.maps_dir)
-        self.one_based = None if one_based is None else bool(one_based)
+        from shapecorr.data.io import MAPS_MARKER, MAPS_ONE_BASED_OPTION, maps_marker_one_based
+
+        declared = maps_marker_one_based(self.maps_dir)  # evaluate.py's own maps say their base
+        if declared is not None and one_based is not None and bool(one_based) != declared:
+            raise CorrespondenceError(
+                f"{MAPS_MARKER} declares {'one' if declared else 'zero'}-based maps but {MAPS_ONE_BASED_OPTION}="
+                f"{str(bool(one_based)).lower()}; drop {MAPS_ONE_BASED_OPTION} (the marker decides)", self.maps_dir)
+        self.one_based = declared if one_based is None else bool(one_based)
         self.extension = extension.lstrip(".")
 
     def path(self, name_x: str, name_y: str) -> Path:

@@ -228,8 +228,19 @@ def test_mesh_cache_hit_and_invalidation(folder, tmp_path, monkeypatch):
     assert calls == []  # served from the cache, file not parsed
     assert torch.equal(first.verts, again.verts) and torch.equal(first.faces, again.faces)
     assert again.scale == first.scale and np.allclose(again.offset, first.offset)
-    # touching the file (new mtime) invalidates the entry
+    # the entry is keyed on the file's content: touching it (new mtime) still hits ...
     path = root / "off" / "shape_000.off"
-    os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 10**9))
+    stat = path.stat()
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
     ShapeDataset(root, operators=OperatorConfig(n_eig=4), cache_dir=tmp_path / "cache").load_shape(0)
+    assert calls == []
+    # ... and an in-place edit that keeps the size and the modification time misses
+    lines = path.read_text().split("\n")
+    digit = next(k for k, c in enumerate(lines[2]) if c.isdigit())  # lines[2]: the first vertex
+    lines[2] = lines[2][:digit] + str((int(lines[2][digit]) + 1) % 10) + lines[2][digit + 1:]
+    path.write_text("\n".join(lines))
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert path.stat().st_size == stat.st_size and path.stat().st_mtime_ns == stat.st_mtime_ns
+    moved = ShapeDataset(root, operators=OperatorConfig(n_eig=4), cache_dir=tmp_path / "cache").load_shape(0)
     assert len(calls) == 1
+    assert not torch.equal(moved.verts, first.verts)
