@@ -214,3 +214,15 @@ def load_model(path: str | os.PathLike, requested: Mapping[str, Any] | None = No
     model.load_state_dict(state, strict=True)
     model.trained_from = str(path)
     return model.to(map_location)
+
+
+def untrained_warning(model) -> str | None:
+    """A one-line warning when ``model`` is a learned model with freshly initialized weights, else None."""
+    from shapecorr.models.base import CorrespondenceModule
+
+    if not isinstance(model, CorrespondenceModule) or model.trained_from is not None:
+        return None
+    if not any(p.requires_grad for p in model.parameters()):
+        return None
+    return (f"warning: {type(model).__name__} has untrained (randomly initialized) weights; its maps mean little. "
+            "Give ckpt_path=CKPT (a checkpoint of train.py) to evaluate a trained model")
