@@ -62,14 +62,20 @@ def command_line_overrides(cfg) -> list[str] | None:
     return None
 
 
-def model_request(cfg) -> tuple[Any, list[str]]:
-    """What the command asks of a checkpoint's model: ``(requested model node or None, override keys)``.
+def model_request(cfg) -> tuple[Any, dict[str, Any]]:
+    """What the command asks of a checkpoint's model: ``(requested model node or None, overrides)``.
 
     The requested node is ``cfg.model`` when the command line selects a model (``model=<name>``; when the command
     line is not known: whenever ``cfg.model`` has a ``_target_``), else None (the checkpoint's own model). The
-    override keys are those of the command line's ``model.<key>=``, ``+model.<key>=``, ``~model.<key>`` and
-    ``model/<group>=`` options, relative to the model node (see :func:`shapecorr.models.recipe.merge_overrides`).
+    overrides are the command line's ``model.<key>=``, ``+model.<key>=``, ``~model.<key>`` and ``model/<group>=``
+    options: ``{key relative to the model node: its value in cfg.model}`` (resolved;
+    :data:`shapecorr.models.recipe.DELETE` for a removed key), for
+    :func:`shapecorr.models.recipe.merge_overrides`.
     """
+    from omegaconf import OmegaConf
+
+    from shapecorr.models.recipe import DELETE
+
     model = cfg.get("model")
     overrides = command_line_overrides(cfg)
     keys: list[str] = []
@@ -80,5 +86,9 @@ def model_request(cfg) -> tuple[Any, list[str]]:
             selects = True
         elif key.startswith("model.") or key.startswith("model/"):
             keys.append(key[len("model."):].replace("/", "."))
+    values: dict[str, Any] = {}
+    for key in keys:
+        value = DELETE if model is None else OmegaConf.select(model, key, default=DELETE)
+        values[key] = OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
     requested = model if selects and model is not None and "_target_" in model else None
-    return requested, keys
+    return requested, values

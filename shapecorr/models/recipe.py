@@ -22,7 +22,7 @@ import copy
 import os
 import pickle
 import zipfile
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -101,7 +101,7 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except (RuntimeError, pickle.UnpicklingError, EOFError, zipfile.BadZipFile, ValueError, OSError,
             AttributeError, TypeError) as err:
-        detail = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        detail = str(err).strip().splitlines()[0].split(". ")[0] if str(err).strip() else ""
         raise ConfigError(f"not a readable checkpoint, truncated or not written by torch.save "
                           f"({type(err).__name__}{': ' + detail if detail else ''}); {CHECKPOINT_HINT}",
                           path) from None
@@ -127,27 +127,26 @@ def check_same_model(recipe: Mapping[str, Any], requested: Mapping[str, Any] | N
                           f"{ours} checkpoint", path)
 
 
-def merge_overrides(recipe: Mapping[str, Any], requested: Mapping[str, Any] | None,
-                    paths: Sequence[str]) -> dict:
-    """The recipe with the values of ``requested`` at the override ``paths`` put on top.
+#: Value of an override that removes the key (``~model.key``).
+DELETE = object()
+
+
+def merge_overrides(recipe: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict:
+    """The recipe with the override values put on top.
 
     Parameters
     ----------
     recipe : mapping
         The checkpoint's model node.
-    requested : mapping, optional
-        The composed ``model`` node of this command (plain or DictConfig), where the overrides' values are read.
-    paths : sequence of str
-        Dotted keys relative to the model node (``layer.refine_levels``, ``backbone`` for ``model/backbone=``);
-        a key missing from ``requested`` is removed (``~model.key``).
+    overrides : mapping of str -> value
+        Dotted keys relative to the model node (``layer.refine_levels``; ``backbone`` for ``model/backbone=``) and
+        their values (plain containers; :data:`DELETE` removes the key). A node value replaces the recipe's.
     """
     from omegaconf import OmegaConf
 
     merged = OmegaConf.create(plain_node(recipe))
-    source = OmegaConf.create(plain_node(requested or {}))
-    for key in paths:
-        value = OmegaConf.select(source, key, default=_MISSING)
-        if value is _MISSING:
+    for key, value in overrides.items():
+        if value is DELETE:
             parent, _, leaf = key.rpartition(".")
             node = OmegaConf.select(merged, parent) if parent else merged
             if node is not None and leaf in node:
@@ -155,9 +154,6 @@ def merge_overrides(recipe: Mapping[str, Any], requested: Mapping[str, Any] | No
             continue
         OmegaConf.update(merged, key, value, merge=False, force_add=True)
     return OmegaConf.to_container(merged, resolve=True)
-
-
-_MISSING = object()
 
 
 def _shape_mismatches(model: torch.nn.Module, state: Mapping[str, torch.Tensor]) -> list[str]:
@@ -177,8 +173,8 @@ def _describe(name: str, model: torch.nn.Module, state: Mapping[str, torch.Tenso
     return f"{name}: {tuple(state[name].shape)} in the checkpoint, {tuple(own[name].shape)} here"
 
 
-def load_model(path: str | os.PathLike, requested: Mapping[str, Any] | None = None, overrides: Sequence[str] = (),
-               map_location: str | torch.device = "cpu"):
+def load_model(path: str | os.PathLike, requested: Mapping[str, Any] | None = None,
+               overrides: Mapping[str, Any] | None = None, map_location: str | torch.device = "cpu"):
     """The model of a checkpoint: its recipe with the overrides merged on top, with the checkpoint's weights.
 
     Parameters
@@ -186,10 +182,10 @@ def load_model(path: str | os.PathLike, requested: Mapping[str, Any] | None = No
     path : path-like
         A checkpoint written by ``train.py``.
     requested : mapping, optional
-        The ``model`` node the command asked for (``model=<name>`` plus overrides): its ``_target_`` must match
-        the checkpoint's, and the override values are read from it. None: the checkpoint's model as trained.
-    overrides : sequence of str
-        Keys of the model node given on the command line (see :func:`merge_overrides`).
+        The ``model`` node the command asked for (``model=<name>``): its ``_target_`` must match the checkpoint's.
+        None: whatever model the checkpoint holds.
+    overrides : mapping of str -> value, optional
+        The command line's ``model.*`` overrides (see :func:`merge_overrides`).
     map_location : device
 
     Raises
@@ -200,12 +196,12 @@ def load_model(path: str | os.PathLike, requested: Mapping[str, Any] | None = No
     ckpt = read_checkpoint(path)
     recipe, state = ckpt[RECIPE_KEY], ckpt[STATE_KEY]
     check_same_model(recipe, requested, path)
-    merged = merge_overrides(recipe, requested, overrides)
-    model = build_model(merged)
+    overrides = dict(overrides or {})
+    model = build_model(merge_overrides(recipe, overrides))
     bad = _shape_mismatches(model, state)
     if bad:
-        culprits = [k for k in overrides if _shape_mismatches(build_model(merge_overrides(recipe, requested, [k])),
-                                                              state)]
+        culprits = [k for k, v in overrides.items()
+                    if _shape_mismatches(build_model(merge_overrides(recipe, {k: v})), state)]
         what = _describe(bad[0], model, state)
         if culprits:
             raise ConfigError(f"model.{culprits[0]} changes the parameter shapes of the checkpoint's model ({what}); "
