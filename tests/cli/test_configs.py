@@ -68,3 +68,30 @@ def test_experiment_config_composes_and_instantiates(name, compose_config, monke
     trainer = instantiate(cfg.trainer, logger=False, enable_checkpointing=False, default_root_dir=str(tmp_path))
     assert trainer.max_epochs == cfg.trainer.max_epochs
     assert trainer.accumulate_grad_batches == cfg.trainer.accumulate_grad_batches
+
+
+LOSSES = sorted(p.stem for p in (CONFIGS / "model" / "loss").glob("*.yaml"))
+POSTPROCESS = sorted(p.stem for p in (CONFIGS / "postprocess").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("name", LOSSES)
+def test_loss_config_composes_into_the_model_node(name, compose_config):
+    from shapecorr.losses.weighted import WeightedLoss
+
+    cfg = compose_config("train", ["model=deep_shells", f"model/loss={name}"])
+    loss = instantiate(cfg.model.loss, _convert_="object")
+    assert isinstance(loss, WeightedLoss) and loss.weights
+
+
+@pytest.mark.parametrize("name", POSTPROCESS)
+def test_postprocess_config_wraps_a_matcher(name, compose_config):
+    cfg = compose_config("evaluate", ["model=descriptor_nn", f"postprocess={name}"])
+    matcher = instantiate(cfg.model, _convert_="object")
+    wrapped = instantiate(cfg.postprocess, _convert_="object")(matcher=matcher)
+    assert isinstance(wrapped, Matcher) and wrapped.matcher is matcher
+
+
+def test_losses_live_in_the_model_node():
+    # every loss lives in its model's node (configs/model/loss/), not in a group of its own
+    assert not (CONFIGS / "loss").exists()
+    assert LOSSES and POSTPROCESS

@@ -209,4 +209,4 @@ def test_configs_compose_and_instantiate(tmp_path, compose_config):
         ev = instantiate(ev_cfg.model, _convert_="object")
         assert isinstance(ev.backbone, IdentityBackbone) and not ev.backbone.trainable
     tiny = instantiate(compose_config("train", ["debug=tiny"]).model, _convert_="object")
-    assert isinstance(tiny.backbone, SpectralBackbone) and tiny.backbone.num_eigs == 200  # debug=tiny keeps the published filter bank
+    assert isinstance(tiny.backbone, SpectralBackbone) and tiny.backbone.num_eigs == 200
