@@ -259,11 +259,10 @@ class NeuroMorph(CorrespondenceModule):
         self.augment = AugmentationConfig.from_options(augment)
         self.query_resolution = None if query_resolution is None else int(query_resolution)
         needs = dict(getattr(backbone, "required_operators", None) or {})
-        if needs and (self.augment.remesh or self.query_resolution is not None):
+        if needs:  # training pairs are augmented copies (rotated, remeshed), queries may run on remeshes
             raise ConfigError(f"neuromorph: the {type(backbone).__name__} backbone reads per-shape operators "
-                              f"{sorted(needs)}, which remeshed shapes do not carry; set model.augment.remesh=false "
-                              "and model.query_resolution=null, or use an operator-free backbone "
-                              "(model/backbone=edgeconv)")
+                              f"{sorted(needs)}, which NeuroMorph's augmented and remeshed shapes do not carry; use "
+                              "a backbone that needs none (model/backbone=edgeconv)")
         self.geodesics = str(geodesics)
         self.match_chunk_size = int(match_chunk_size)
         self.cache_dir = cache_dir
@@ -272,11 +271,6 @@ class NeuroMorph(CorrespondenceModule):
         self._augmenter: PairAugmenter | None = None
         self._query_remeshes: OrderedDict[tuple[str, int], Remeshed] = OrderedDict()
         self._first_val_sequence = None
-
-    @property
-    def required_operators(self) -> dict:  # type: ignore[override]
-        """The backbone's operator request (the published EdgeConv backbone needs none)."""
-        return dict(getattr(self.feature_net, "required_operators", None) or {})
 
     @property
     def backbone(self) -> Backbone:

@@ -10,10 +10,10 @@ step in a subprocess (small network sizes, no validation or test). Then, in this
 3. a test-time override (``+model.<key>=...``, the model's option that changes its maps) changes the map and is
    recorded in ``run.json``.
 
-NeuroMorph takes only backbones that need no per-shape operators while it remeshes (its augmentation and queries
-run on remeshes, which carry none); with ``model.augment.remesh=false`` DiffusionNet works as well. The identity
-backbone has nothing to train (``train.py`` refuses it; ``evaluate.py model=deep_shells_ablation`` needs no
-checkpoint).
+NeuroMorph takes only backbones that need no per-shape operators: it trains on augmented copies (rotated,
+remeshed) and may query remeshes, which carry none (it refuses the others, tests/models/test_neuromorph.py). The
+identity backbone has nothing to train (``train.py`` refuses it; ``evaluate.py model=deep_shells_ablation`` needs
+no checkpoint).
 """
 
 from __future__ import annotations
@@ -54,7 +54,6 @@ MATRIX = [
     ("gmsm", "spectral_conv", []),
     ("gmsm", "edgeconv", []),
     ("neuromorph", "edgeconv", []),
-    ("neuromorph", "diffusion_net", ["model.augment.remesh=false"]),
 ]
 #: A test-time option per model that changes its maps.
 TEST_TIME_OVERRIDE = {
@@ -97,6 +96,7 @@ def _evaluate(ckpt: Path, out: Path, cache: Path, *overrides: str) -> np.ndarray
 
 @pytest.mark.parametrize("model, backbone, extra", MATRIX, ids=[f"{m}-{b}" for m, b, _ in MATRIX])
 def test_train_then_evaluate_the_checkpoint(model, backbone, extra, cache_dir, tmp_path):
+    """One cell of the matrix (module docstring)."""
     from shapecorr.data.operators import required_request
 
     run = tmp_path / "run"

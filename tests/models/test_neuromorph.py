@@ -35,6 +35,7 @@ from shapecorr.errors import ConfigError
 from shapecorr.losses.weighted import WeightedLoss
 from shapecorr.models.neuromorph import NeuroMorph
 from shapecorr.models.schedules import EpochSchedule, LossWeightSchedule
+from shapecorr.nn.spectral_conv import SpectralBackbone
 from shapecorr.nn.edgeconv_backbone import EdgeConvBackbone
 from shapecorr.viz.interpolation import interpolation_strip_figure, log_interpolation
 
@@ -280,6 +281,8 @@ def test_options_are_validated(tmp_path):
     assert model.interpolator.net.pool == "global" and model.backbone.out_channels == 16
     with pytest.raises(ConfigError, match="backbone"):
         NeuroMorph(backbone=torch.nn.Linear(3, 3))
+    with pytest.raises(ConfigError, match="per-shape operators"):  # augmented shapes carry none
+        NeuroMorph(backbone=SpectralBackbone())
     with pytest.raises(ConfigError, match="interpolation_net"):
         NeuroMorph(interpolation_net=dict(width=3))
     with pytest.raises(ConfigError, match="model.loss"):

@@ -118,8 +118,8 @@ def test_an_override_changing_parameter_shapes_names_the_key(checkpoint):
 
 
 def test_model_request_reads_the_command_line():
-    args = ["model=deep_shells", "model.refine=false", "++model.layer.sigma=0.2", "~model.seed", "model/backbone=identity",
-            "data=synthetic"]
+    args = ["model=deep_shells", "model.refine=false", "++model.layer.sigma=0.2", "~model.seed",
+            "model/backbone=identity", "data=synthetic"]
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         cfg = compose("evaluate", overrides=args, return_hydra_config=True)
     requested, overrides = model_request(cfg)
