@@ -95,3 +95,17 @@ def test_losses_live_in_the_model_node():
     # every loss lives in its model's node (configs/model/loss/), not in a group of its own
     assert not (CONFIGS / "loss").exists()
     assert LOSSES and POSTPROCESS
+
+
+@pytest.mark.parametrize("name", ["deep_shells", "deep_shells_published", "gmsm"])
+def test_run_presets_reach_only_the_models_that_have_them(name, compose_config):
+    """preset=quick / tiny: each model config applies its own settings (configs/quick/<family>/); variants inherit."""
+    published = compose_config("evaluate", [f"model={name}"]).model
+    quick = compose_config("train", [f"model={name}"]).model
+    tiny = compose_config("train", [f"model={name}", "debug=tiny"]).model
+    assert published.num_samples == 2000 and quick.num_samples == 400 and tiny.num_samples == 100
+    assert compose_config("train", [f"model={name}", "preset=full"]).model == published
+    if name == "gmsm":
+        assert quick.graph.burn_in == 0 and published.graph.burn_in == 100
+    neuromorph = compose_config("train", ["model=neuromorph", "debug=tiny"]).model
+    assert neuromorph == compose_config("evaluate", ["model=neuromorph"]).model
