@@ -30,6 +30,7 @@ from shapecorr.losses.shells import graph_alignment_loss, level_energy_loss
 from shapecorr.losses.weighted import WeightedLoss
 from shapecorr.matching.deep_shells import full_resolution_shells
 from shapecorr.models.deep_shells import DeepShells
+from shapecorr.models.schedules import LossWeightSchedule
 from shapecorr.models.gmsm import (
     GMSM,
     GRAPH_FILE,
@@ -138,7 +139,8 @@ def test_graph_off_is_pairwise_deep_shells(shapes):
     torch.manual_seed(1)
     doubled = gmsm.training_step(batch, 3)
     torch.testing.assert_close(doubled - loss_p, 2 * (with_graph - loss_p), rtol=1e-4, atol=0)
-    gmsm.loss.set_weight("graph", 0.0)
+    LossWeightSchedule("graph", [[0, 0.5], [2, 0.0]]).apply(gmsm, 2)  # a schedule switches the term off
+    assert gmsm.loss.weights["graph"] == 0.0
     torch.manual_seed(1)
     assert torch.equal(gmsm.training_step(batch, 3), loss_p)
 
