@@ -71,7 +71,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
-from shapecorr.cli.common import EXIT_INTERRUPTED, exit_on_user_error, model_request, user_config_error
+from shapecorr.cli.common import EXIT_INTERRUPTED, exit_on_user_error, user_config_error
 from shapecorr.data.cache import atomic_open
 from shapecorr.data.datasets import PairDataset, pair_name
 from shapecorr.data.operators import required_request
@@ -81,6 +81,7 @@ from shapecorr.eval.export import INTERP_DIR, map_paths
 from shapecorr.matching.baselines import LinearBlend, PrecomputedMaps
 from shapecorr.matching.result import Matcher
 from shapecorr.models.recipe import build_model, load_model, untrained_warning
+from shapecorr.cli.model_request import model_request
 from shapecorr.viz.interp_curves import INTERP_CURVES_PNG, write_interp_curves_png
 from shapecorr.viz.pck import write_pck_png
 from shapecorr.viz.render import render_correspondence

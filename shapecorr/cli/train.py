@@ -25,16 +25,16 @@ from typing import Any
 import hydra
 import numpy as np
 import pytorch_lightning as pl
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from omegaconf.errors import OmegaConfBaseException
 from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
 from pytorch_lightning.utilities.exceptions import MisconfigurationException
 
-from shapecorr.cli.common import exit_on_user_error, model_request, user_config_error
-from shapecorr.data.cache import atomic_open
+from shapecorr.cli.common import exit_on_user_error, user_config_error
 from shapecorr.data.operators import required_request
 from shapecorr.errors import ConfigError
-from shapecorr.models.recipe import build_model, load_model
+from shapecorr.models.recipe import build_model, load_model, save_recipe
+from shapecorr.cli.model_request import model_request
 
 CHECKPOINT_DIR = "checkpoints"
 #: The resolved model node of the run (the recipe every checkpoint holds as well).
@@ -156,10 +156,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError(f"{type(model).__name__} has no trainable parameters with these options (e.g. "
                           "model/backbone=identity): nothing to train; evaluate it with evaluate.py instead")
     dm.with_operators(required_request(model))
-    if trainer.is_global_zero and getattr(model, "recipe", None) is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        with atomic_open(out_dir / RECIPE_FILE) as fh:
-            fh.write(OmegaConf.to_yaml(model.recipe).encode())
+    if trainer.is_global_zero:
+        save_recipe(model, out_dir / RECIPE_FILE)
     try:
         trainer.fit(model, datamodule=dm, ckpt_path=str(ckpt_path) if ckpt_path else None)
     except MisconfigurationException as err:  # options Lightning only checks once fitting starts

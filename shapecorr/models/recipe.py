@@ -212,6 +212,22 @@ def load_model(path: str | os.PathLike, requested: Mapping[str, Any] | None = No
     return model.to(map_location)
 
 
+def save_recipe(model, path: str | os.PathLike) -> Path | None:
+    """Write the model's recipe as YAML to ``path`` (atomically); None for a model without one."""
+    from omegaconf import OmegaConf
+
+    from shapecorr.data.cache import atomic_open
+
+    recipe = getattr(model, "recipe", None)
+    if recipe is None:
+        return None
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_open(path) as fh:
+        fh.write(OmegaConf.to_yaml(recipe).encode())
+    return path
+
+
 def untrained_warning(model) -> str | None:
     """A one-line warning when ``model`` is a learned model with freshly initialized weights, else None."""
     from shapecorr.models.base import CorrespondenceModule
