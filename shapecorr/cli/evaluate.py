@@ -112,7 +112,14 @@ def build_matcher(cfg: DictConfig, device: torch.device):
 
     Wrapped by the ``postprocess=`` refinement, then by the ``interpolator=`` (both optional).
     """
-    model_cfg = cfg.get("model")
+    model_cfg, matcher = cfg.get("model"), None
+    if cfg.get("ckpt_path") and not cfg.get("maps_dir"):
+        # the checkpoint's recipe with the command line's model.* overrides on top (shapecorr.models.recipe);
+        # the merged recipe replaces cfg.model, so that run.json records what is evaluated
+        requested, overrides = model_request(cfg)
+        matcher = load_model(str(cfg.ckpt_path), requested, overrides, map_location=device)
+        with open_dict(cfg):
+            cfg.model = model_cfg = OmegaConf.create(matcher.recipe)
     if cfg.get("maps_dir"):
         if model_cfg is not None:
             raise ConfigError("give either model=<name> or maps_dir=DIR, not both")
@@ -120,17 +127,11 @@ def build_matcher(cfg: DictConfig, device: torch.device):
         if one_based is not None and not isinstance(one_based, bool):
             raise ConfigError(f"maps_one_based must be true, false or null (not said), got {one_based!r}")
         return PrecomputedMaps(cfg.maps_dir, one_based=one_based, extension=str(cfg.maps_extension))
-    if cfg.get("ckpt_path"):
-        # the checkpoint's recipe with the command line's model.* overrides on top (shapecorr.models.recipe);
-        # the merged recipe replaces cfg.model, so that run.json records what is evaluated
-        requested, overrides = model_request(cfg)
-        matcher = load_model(str(cfg.ckpt_path), requested, overrides, map_location=device)
-        with open_dict(cfg):
-            cfg.model = OmegaConf.create(matcher.recipe)
-    elif model_cfg is None:
-        raise ConfigError("nothing to evaluate: give model=<name> (e.g. model=descriptor_nn), ckpt_path=CKPT or "
-                          "maps_dir=DIR")
-    else:
+    if model_cfg is None:
+        raise ConfigError("nothing to evaluate: give model=<name> (e.g. model=descriptor_nn) or maps_dir=DIR")
+    if "_target_" not in model_cfg:
+        raise ConfigError("the model config has no _target_")
+    if matcher is None:  # fresh weights: a learned model gets a warning
         matcher = build_model(model_cfg)
         warning = untrained_warning(matcher)
         if warning:
