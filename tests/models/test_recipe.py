@@ -13,7 +13,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from shapecorr.cli.common import model_request
+from shapecorr.cli.model_request import model_request
 from shapecorr.errors import ConfigError
 from shapecorr.models.base import RECIPE_KEY
 from shapecorr.models.deep_shells import DeepShells
