@@ -104,11 +104,14 @@ def run_case(case: str, golden: Path, device_name: str, threads: int) -> dict:
     """Child process: load, measure one operation, return the numbers (printed as JSON by ``--child``)."""
     import torch
 
+    from shapecorr.losses.shells import level_energy_loss
+    from shapecorr.losses.weighted import WeightedLoss
     from shapecorr.models.deep_shells import DeepShells
 
     torch.set_num_threads(threads)
     device = torch.device(device_name)
-    model = DeepShells(num_samples=TRAIN_SAMPLES, pretrained=golden / WEIGHTS).to(device)
+    loss = WeightedLoss({"shells": {"fn": level_energy_loss, "weight": 1.0}})  # configs/model/loss/deep_shells.yaml
+    model = DeepShells(num_samples=TRAIN_SAMPLES, loss=loss, pretrained=golden / WEIGHTS).to(device)
     pair = load_samples(golden, device)
     model.train(case == "train_step")
     cuda = device.type == "cuda"

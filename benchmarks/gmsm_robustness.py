@@ -64,7 +64,7 @@ def main(argv=None) -> int:
     fused = {split: sum(1 for s in shapes.values() if s["split"] == split and s.get("fused"))
              for split in ("train", "test")}
     summary = {"data_overrides": data, "fused_shapes": fused,
-               "train": "train.py model=gmsm (configs/quick/gmsm.yaml)", "results": results,
+               "train": "train.py model=gmsm (configs/quick/gmsm/quick.yaml)", "results": results,
                "units": "errors: geodesic distance / sqrt(area of the target) (x100 = percent)"}
     print(json.dumps(results, indent=1))
     bench_common.write_report(args.out, bench_common.summary_report("gmsm_robustness.py", sys.argv[1:] if argv is None

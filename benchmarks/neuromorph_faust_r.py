@@ -170,12 +170,12 @@ def interpolation_benchmark(ckpt: str, faust_r: str | None, max_pairs: int | Non
     from tqdm import tqdm
 
     from shapecorr.data.datasets import PairDataset
-    from shapecorr.models.neuromorph import NeuroMorph
+    from shapecorr.models.recipe import load_model
 
     overrides = ["data=faust_r", *([f"data.root={faust_r}"] if faust_r else [])]
     with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
         cfg = compose("evaluate", overrides=overrides)
-    model = NeuroMorph.load_from_checkpoint(ckpt, map_location="cpu").eval()
+    model = load_model(ckpt).eval()
     dm = instantiate(cfg.data, _convert_="object")
     dm.with_operators(**dict(model.required_operators or {}))
     shapes = dm.shapes("test")

@@ -90,13 +90,13 @@ class TermRecorder:
         return total, values
 
 
-def original_loss():
-    """The loss of ``model=neuromorph_original`` (configs/loss/neuromorph_original.yaml)."""
+def model_loss(model: str = "neuromorph"):
+    """The loss of ``model=<model>`` (configs/model/loss/<model>.yaml)."""
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
     with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        cfg = compose("train", overrides=["model=neuromorph_original"])
+        cfg = compose("train", overrides=[f"model={model}"])
     return instantiate(cfg.model.loss, _convert_="object")
 
 
@@ -138,11 +138,12 @@ def run(args) -> dict:
     for variant in args.variants:
         torch.manual_seed(args.seed)
         mode = "all" if variant in ("published", "original_preset") else "geodesic"
-        options = {}
+        options = dict(loss=model_loss())
         if variant == "original_preset":
             options = dict(backbone=EdgeConvBackbone(pool="channel", residual_init="original"),
-                           interpolator=dict(hidden_channels=128, n_blocks=5, pool="channel", residual_init="original"),
-                           arap_edge_weight_scale=1.0, loss=original_loss())
+                           interpolation_net=dict(hidden_channels=128, n_blocks=5, pool="channel",
+                                                  residual_init="original"),
+                           arap_edge_weight_scale=1.0, loss=model_loss("neuromorph_original"))
         model = NeuroMorph(query_resolution=args.resolution, augment=dict(remesh=False, rotate=False),
                            map_gradient=mode, seed=args.seed, **options)
         optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)

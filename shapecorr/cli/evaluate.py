@@ -10,9 +10,10 @@ The matcher may be learned, axiomatic, a baseline, or maps computed elsewhere.
 
 Options: ``configs/evaluate.yaml``. Steps of ``task=match`` (the default):
 
-1. Build the matcher (``hydra.utils.instantiate(cfg.model)``, or ``load_from_checkpoint(ckpt_path)`` of the
-   model's class, or :class:`~shapecorr.matching.baselines.PrecomputedMaps` for ``maps_dir``) and the data
-   module; the matcher's ``required_operators`` (an operator request, e.g. ``{"wks": {}}``;
+1. Build the matcher (``hydra.utils.instantiate(cfg.model)``; with ``ckpt_path`` the checkpoint's recipe with the
+   command line's ``model.*`` overrides on top, and its weights, :func:`shapecorr.models.recipe.load_model`; or
+   :class:`~shapecorr.matching.baselines.PrecomputedMaps` for ``maps_dir``) and the data module;
+   the matcher's ``required_operators`` (an operator request, e.g. ``{"wks": {}}``;
    :mod:`shapecorr.data.operators`) are added to the data's operators.
 2. Fill the shape cache of the split, with the geodesic rows from every target's ground-truth points (rank 0,
    parallel, workers chosen from the estimated memory, progress bar).
@@ -70,7 +71,7 @@ from typing import Any
 import hydra
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from shapecorr.cli.common import EXIT_INTERRUPTED, check_output_dir, exit_on_user_error, user_config_error
@@ -82,6 +83,8 @@ from shapecorr.eval import multi_shape, protocol, reports
 from shapecorr.eval.export import INTERP_DIR, map_paths
 from shapecorr.matching.baselines import LinearBlend, PrecomputedMaps
 from shapecorr.matching.result import Matcher
+from shapecorr.models.recipe import build_model, load_model, untrained_warning
+from shapecorr.cli.model_request import model_request
 from shapecorr.viz.interp_curves import INTERP_CURVES_PNG, write_interp_curves_png
 from shapecorr.viz.pck import write_pck_png
 from shapecorr.viz.render import render_correspondence
@@ -112,7 +115,14 @@ def build_matcher(cfg: DictConfig, device: torch.device):
 
     Wrapped by the ``postprocess=`` refinement, then by the ``interpolator=`` (both optional).
     """
-    model_cfg = cfg.get("model")
+    model_cfg, matcher = cfg.get("model"), None
+    if cfg.get("ckpt_path") and not cfg.get("maps_dir"):
+        # the checkpoint's recipe with the command line's model.* overrides on top (shapecorr.models.recipe);
+        # the merged recipe replaces cfg.model, so that run.json records what is evaluated
+        requested, overrides = model_request(cfg)
+        matcher = load_model(str(cfg.ckpt_path), requested, overrides, map_location=device)
+        with open_dict(cfg):
+            cfg.model = model_cfg = OmegaConf.create(matcher.recipe)
     if cfg.get("maps_dir"):
         if model_cfg is not None:
             raise ConfigError("give either model=<name> or maps_dir=DIR, not both")
@@ -126,19 +136,11 @@ def build_matcher(cfg: DictConfig, device: torch.device):
         raise ConfigError("nothing to evaluate: give model=<name> (e.g. model=descriptor_nn) or maps_dir=DIR")
     if "_target_" not in model_cfg:
         raise ConfigError("the model config has no _target_")
-    try:
-        if cfg.get("ckpt_path"):
-            path = Path(cfg.ckpt_path)
-            if not path.is_file():
-                raise ConfigError("checkpoint file does not exist", path)
-            cls = hydra.utils.get_class(model_cfg._target_)
-            if not hasattr(cls, "load_from_checkpoint"):
-                raise ConfigError(f"{model_cfg._target_} cannot load a checkpoint (no load_from_checkpoint)", path)
-            matcher = cls.load_from_checkpoint(str(path), map_location=device)
-        else:
-            matcher = hydra.utils.instantiate(model_cfg, _convert_="object")
-    except hydra.errors.InstantiationException as err:
-        raise ConfigError(f"cannot build the model: {err}") from None
+    if matcher is None:  # fresh weights: a learned model gets a warning
+        matcher = build_model(model_cfg)
+        warning = untrained_warning(matcher)
+        if warning:
+            print(warning, file=sys.stderr)
     if isinstance(matcher, torch.nn.Module):
         matcher = matcher.eval().to(device)
     if not isinstance(matcher, Matcher):

@@ -4,8 +4,10 @@
     python train.py experiment=deep_shells_faust_r data.root=/path/to/FAUST_r trainer=gpu
     python train.py ckpt_path=outputs/train/<run>/checkpoints/last.ckpt   # resume (same data order and samples)
 
-Options: ``configs/train.yaml``. Steps: seed everything; build the data module and the model
-(``hydra.utils.instantiate``); add the model's ``required_operators`` (an operator request, see
+Options: ``configs/train.yaml``. Steps: seed everything; build the data module and the model from its recipe, the
+resolved ``model`` node (:mod:`shapecorr.models.recipe`; written to ``<run>/model.yaml`` and into every
+checkpoint; to resume, the checkpoint's recipe with the command line's ``model.*`` overrides on top);
+add the model's ``required_operators`` (an operator request, see
 :mod:`shapecorr.data.operators`) to the data; fit with checkpoints
 (``<run>/checkpoints``: ``last.ckpt`` plus one every ``checkpoint.every_n_epochs`` epochs, or every
 ``checkpoint.every_n_train_steps`` optimizer steps when that is set) and the logger of the ``logger`` group under
@@ -31,8 +33,12 @@ from pytorch_lightning.utilities.exceptions import MisconfigurationException
 from shapecorr.cli.common import check_output_dir, exit_on_user_error, user_config_error
 from shapecorr.data.operators import required_request
 from shapecorr.errors import ConfigError
+from shapecorr.models.recipe import build_model, load_model, save_recipe
+from shapecorr.cli.model_request import model_request
 
 CHECKPOINT_DIR = "checkpoints"
+#: The resolved model node of the run (the recipe every checkpoint holds as well).
+RECIPE_FILE = "model.yaml"
 
 
 def _instantiate(node: DictConfig, what: str, **kwargs) -> Any:
@@ -136,10 +142,12 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         out_dir = check_output_dir(Path(str(cfg.paths.output_dir)), "paths.output_dir=DIR or hydra.run.dir=DIR")
         pl.seed_everything(int(cfg.seed), workers=True)
         ckpt_path = cfg.get("ckpt_path")
-        if ckpt_path and not Path(str(ckpt_path)).is_file():
-            raise ConfigError("checkpoint to resume from does not exist", str(ckpt_path))
         dm = _instantiate(cfg.data, "data module")
-        model = _instantiate(cfg.model, "model")
+        if ckpt_path:  # resume: the checkpoint's recipe with the command line's model.* overrides on top
+            requested, overrides = model_request(cfg)
+            model = load_model(str(ckpt_path), requested, overrides)
+        else:
+            model = build_model(cfg.model)
         logger = _instantiate(cfg.logger, "logger") if cfg.get("logger") else False
         trainer = _instantiate(cfg.trainer, "trainer", callbacks=build_callbacks(cfg, out_dir), logger=logger)
     except OmegaConfBaseException as err:
@@ -148,6 +156,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError(f"{type(model).__name__} has no trainable parameters with these options (e.g. "
                           "model/backbone=identity): nothing to train; evaluate it with evaluate.py instead")
     dm.with_operators(required_request(model))
+    if trainer.is_global_zero:
+        save_recipe(model, out_dir / RECIPE_FILE)
     try:
         trainer.fit(model, datamodule=dm, ckpt_path=str(ckpt_path) if ckpt_path else None)
     except MisconfigurationException as err:  # options Lightning only checks once fitting starts

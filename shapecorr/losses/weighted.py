@@ -14,7 +14,9 @@ receives the inputs whose names match its function's parameters (the others are 
 loss functions are coupled by argument names only, never by config keys. A missing required input raises
 :class:`~shapecorr.errors.ConfigError` naming the term. A term of weight 0 is skipped (not evaluated, and
 absent from ``values``), which lets a schedule switch an expensive term off (e.g. NeuroMorph's geodesic
-term after epoch 300, :meth:`WeightedLoss.set_weight`).
+term after epoch 300, :meth:`WeightedLoss.set_weight`). A term whose function returns None does not apply to
+these inputs (e.g. G-MSM's graph term for a pair without composed graph maps): it is left out of the total and
+of ``values``.
 """
 
 from __future__ import annotations
@@ -114,6 +116,8 @@ class WeightedLoss:
                 raise ConfigError(f"loss term {name!r} needs the inputs {missing}, which the model did not pass")
             kwargs = dict(inputs) if var_kw else {k: v for k, v in inputs.items() if k in accepted}
             value = fn(**kwargs)
+            if value is None:
+                continue
             if not isinstance(value, torch.Tensor) or value.numel() != 1:
                 raise ConfigError(f"loss term {name!r} must return a scalar tensor, got {type(value).__name__}")
             if not bool(torch.isfinite(value)):
@@ -121,5 +125,5 @@ class WeightedLoss:
             values[name] = value.reshape(())
             total = weight * values[name] if total is None else total + weight * values[name]
         if total is None:
-            raise ConfigError("every loss term has weight 0; nothing to optimize")
+            raise ConfigError("every loss term has weight 0 or does not apply; nothing to optimize")
         return total, values

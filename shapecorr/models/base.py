@@ -13,8 +13,10 @@ A concrete model implements ``training_step`` (features -> matching -> loss -> `
   ``{name: {param: value}}`` (:mod:`shapecorr.data.operators`), merged into the data module's operators by
   ``train.py`` / ``evaluate.py``;
 - optimizer / LR-scheduler factories (``model.optimizer`` / ``model.scheduler`` ``_partial_: true`` nodes):
-  :func:`build_optimizers`, :func:`adam`, and :func:`as_factory` / :func:`factory_node` to keep them as plain
-  nodes in checkpoints.
+  :func:`build_optimizers`, :func:`adam`;
+- the model's **recipe** (:attr:`CorrespondenceModule.recipe`): the resolved ``model`` config node it was built
+  from, written into every checkpoint under :data:`RECIPE_KEY` (:mod:`shapecorr.models.recipe` builds models
+  from it).
 
 Geodesic matrices come from the data module's shape cache; a small in-memory LRU keeps the few shapes of the
 validation set.
@@ -25,7 +27,7 @@ from __future__ import annotations
 import functools
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
@@ -42,6 +44,9 @@ from shapecorr.viz.tensorboard import log_correspondence_meshes, log_pck_figure
 GEODESIC_LRU_SIZE = 8
 
 
+#: Checkpoint entry holding the model's recipe (the resolved ``model`` config node, plain containers).
+RECIPE_KEY = "model_recipe"
+
 #: An optimizer factory: ``hydra.utils.instantiate`` of a ``_partial_: true`` node, called with the parameters.
 OptimizerFactory = Callable[[Iterable[torch.nn.Parameter]], torch.optim.Optimizer]
 #: An LR-scheduler factory (``_partial_: true`` node), called with the optimizer.
@@ -53,43 +58,6 @@ def adam(lr: float) -> OptimizerFactory:
     if not lr > 0:
         raise ConfigError(f"optimizer: lr must be positive, got {lr}")
     return functools.partial(torch.optim.Adam, lr=float(lr))
-
-
-def as_factory(value: Any, what: str = "optimizer") -> Callable | None:
-    """An optimizer/scheduler factory from a ``_partial_: true`` node, a factory or None.
-
-    The node is a mapping, e.g. from a checkpoint's hyperparameters; an already built factory is passed
-    through.
-    """
-    if value is None or callable(value):
-        return value
-    from omegaconf import DictConfig
-
-    if isinstance(value, (Mapping, DictConfig)) and "_target_" in value:
-        import hydra
-
-        try:
-            factory = hydra.utils.instantiate(value, _partial_=True)
-        except hydra.errors.InstantiationException as err:
-            raise ConfigError(f"model.{what}: cannot build {dict(value)!r}: {err}") from None
-        return factory
-    raise ConfigError(f"model.{what} must be a _partial_: true node with a _target_ or a factory, got {value!r}")
-
-
-def factory_node(factory: Callable | None) -> dict | None:
-    """The ``_partial_: true`` node of a factory built by :func:`as_factory` / Hydra.
-
-    The factory is a ``functools.partial`` of an importable callable with keyword arguments; the node is for
-    checkpoints' hyperparameters. None for None or a factory that has no such form (a checkpoint then needs
-    the factory passed to ``load_from_checkpoint``).
-    """
-    if not isinstance(factory, functools.partial) or factory.args:
-        return None
-    func = factory.func
-    module, name = getattr(func, "__module__", None), getattr(func, "__qualname__", "")
-    if module is None or "<" in name:
-        return None
-    return {"_target_": f"{module}.{name}", "_partial_": True, **factory.keywords}
 
 
 def build_optimizers(
@@ -129,9 +97,17 @@ class CorrespondenceModule(pl.LightningModule):
 
     #: Operator request ``{name: {param: value}}`` the model needs from the data (overridden by subclasses).
     required_operators: dict = {}
+    #: Options that only initialize the weights (e.g. a file of pretrained weights): the recipe stored in a
+    #: checkpoint sets them to null, since the checkpoint holds the weights themselves.
+    weight_options: tuple[str, ...] = ()
 
     def __init__(self):
         super().__init__()
+        #: The resolved ``model`` config node this module was built from (set by
+        #: :func:`shapecorr.models.recipe.build_model`); None for a module built in code.
+        self.recipe: dict | None = None
+        #: Where the weights came from (a checkpoint or a pretrained file); None for a fresh initialization.
+        self.trained_from: str | None = None
         self._geodesics: OrderedDict[tuple[str, str], np.ndarray] = OrderedDict()
         self._eval_errors: dict[str, list[np.ndarray]] = {"val": [], "test": []}
         self._first_val_pair = None
@@ -140,6 +116,11 @@ class CorrespondenceModule(pl.LightningModule):
     def match(self, x, y) -> MatchResult:  # pragma: no cover - abstract
         """Point-to-point map x -> y (see :mod:`shapecorr.matching.result`)."""
         raise NotImplementedError
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        """Write the recipe into the checkpoint (:data:`RECIPE_KEY`), the weight-only options set to null."""
+        if self.recipe is not None:
+            checkpoint[RECIPE_KEY] = {**self.recipe, **{k: None for k in self.weight_options if k in self.recipe}}
 
     # -- evaluation ----------------------------------------------------------------------------------------
     def _geodesic_matrix(self, split: str, sample) -> np.ndarray:

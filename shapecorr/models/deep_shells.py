@@ -1,18 +1,18 @@
 """Deep Shells as a LightningModule.
 
-A backbone (spectral filter bank on SHOT) -> hierarchical OT layer -> mean level energy.
+A backbone (spectral filter bank on SHOT) -> hierarchical OT layer -> loss of the level energies.
 
 Eisenberger, Toker, Leal-Taixé, Cremers, NeurIPS 2020 (docs/deep_shells.md). The module is thin: the features come
 from the injected backbone (:mod:`shapecorr.nn.backbone`; ``configs/model/backbone/``: ``spectral_conv`` =
 :class:`~shapecorr.nn.spectral_conv.SpectralBackbone`, the published network; ``identity`` =
-:class:`~shapecorr.nn.identity.IdentityBackbone`, the "no learning" ablation), the matching and the loss from
+:class:`~shapecorr.nn.identity.IdentityBackbone`, the "no learning" ablation), the matching and the level energies from
 :func:`~shapecorr.matching.deep_shells.deep_shells_layer`, test-time maps from
 :func:`~shapecorr.matching.deep_shells.deep_shells_query`; the optimizer (and optional LR scheduler) are
 ``_partial_`` nodes (``configs/model/optimizer/adam.yaml``: Adam 1e-4, published).
 
 Training step, for one pair: ``num_samples`` vertices per shape drawn uniformly with replacement (published:
-2000), features evaluated at those rows only, the OT layer over the shell schedule ``layer.k_array``, loss =
-(weighted) mean of the level energies. The sample generator is seeded from ``(seed, epoch, batch index)``, so a
+2000), features evaluated at those rows only, the OT layer over the shell schedule ``layer.k_array``, then the loss of
+the level energies. The sample generator is seeded from ``(seed, epoch, batch index)``, so a
 run resumed from a checkpoint draws exactly the samples the uninterrupted run would have drawn (the global
 step is not used: with gradient accumulation many batches share one).
 
@@ -20,15 +20,13 @@ Published weights: ``pretrained=PATH`` initializes the spectral backbone from th
 (``ckpt_*.pth``, :func:`~shapecorr.nn.spectral_conv.load_original_deep_shells_weights`) or from one of our
 Lightning checkpoints (``.ckpt``: its ``backbone.*`` weights); ``configs/model/deep_shells_published.yaml`` takes the
 path from ``$SHAPECORR_DEEP_SHELLS_WEIGHTS`` so that ``evaluate.py model=deep_shells_published`` needs no checkpoint.
-The path is not a hyperparameter of the checkpoints this module writes (they hold the weights themselves, and a
-checkpoint must load after the file has moved); it is recorded under :data:`PRETRAINED_CHECKPOINT_KEY`.
+The recipe a checkpoint stores has ``pretrained: null`` (the checkpoint holds the weights themselves, and must
+load after the file has moved); the path is recorded under :data:`PRETRAINED_CHECKPOINT_KEY` (provenance).
 
-Checkpoints record the backbone and the optimizer as ``_target_`` nodes (hyperparameters ``backbone``,
-``optimizer``, ``scheduler``), so ``load_from_checkpoint(path)`` rebuilds them. Checkpoints written before the
-backbone was injected carry ``backbone: spectral|identity``, the flattened filter-bank keys (``descriptor``,
-``in_channels``, ``out_channels``, ``hidden_channels``, ``num_basis``, ``num_eigs``, ``max_frequency``,
-``activation``) and ``lr``: the constructor still accepts them (:data:`LEGACY_OPTIONS`), maps them to the
-backbone / optimizer nodes and warns (FutureWarning).
+Loss: a :class:`~shapecorr.losses.weighted.WeightedLoss` (``model.loss``, ``configs/model/loss/deep_shells.yaml``)
+whose terms receive ``level_energies (L,)``; published: the term ``shells``, the plain mean of the level energies
+(:func:`~shapecorr.losses.shells.level_energy_loss`). Subclasses add inputs for further terms
+(:meth:`DeepShells.loss_inputs`; G-MSM's graph term).
 
 ``match``: features at full resolution, the coarse OT level and the axiomatic refinement (``layer.refine_*``,
 published 40 levels from 6 to 499). During training, validation uses a cheaper refinement with
@@ -39,9 +37,8 @@ full schedule (``refine=False`` disables it everywhere).
 
 from __future__ import annotations
 
-import warnings
-from collections.abc import Mapping, Sequence
-from dataclasses import asdict, replace
+from collections.abc import Mapping
+from dataclasses import replace
 from os import PathLike
 from pathlib import Path
 from typing import Any
@@ -61,15 +58,8 @@ from shapecorr.matching.deep_shells import (
     shell_size,
 )
 from shapecorr.matching.result import MatchResult
-from shapecorr.models.base import (
-    CorrespondenceModule,
-    adam,
-    as_factory,
-    build_optimizers,
-    factory_node,
-)
-from shapecorr.nn.backbone import backbone_node
-from shapecorr.nn.identity import IdentityBackbone
+from shapecorr.losses.weighted import WeightedLoss
+from shapecorr.models.base import CorrespondenceModule, adam, build_optimizers
 from shapecorr.nn.spectral_conv import (
     SpectralBackbone,
     SpectralFilterBank,
@@ -84,13 +74,6 @@ LIGHTNING_STATE_KEY = "state_dict"
 BACKBONE_PREFIX = "backbone."
 #: Extra checkpoint entry recording the file the weights were initialized from (provenance only).
 PRETRAINED_CHECKPOINT_KEY = "deep_shells_pretrained"
-#: Options of checkpoints written before the backbone and optimizer were injected (mapped with a warning).
-LEGACY_BACKBONE_OPTIONS = ("descriptor", "in_channels", "out_channels", "hidden_channels", "num_basis", "num_eigs",
-                           "max_frequency", "activation")
-LEGACY_OPTIONS = (*LEGACY_BACKBONE_OPTIONS, "lr")
-#: Values of the legacy string option ``backbone``.
-LEGACY_BACKBONES = ("spectral", "identity")
-
 
 def _as_config(layer: Mapping[str, Any] | DeepShellsConfig | None, num_samples: int) -> DeepShellsConfig:
     if isinstance(layer, DeepShellsConfig):
@@ -104,54 +87,28 @@ def _as_config(layer: Mapping[str, Any] | DeepShellsConfig | None, num_samples: 
         raise ConfigError(f"deep_shells: invalid layer option: {err}") from None
 
 
-def _legacy_backbone(backbone: Any, legacy: dict) -> nn.Module:
-    """The backbone described by the options of a checkpoint written before backbones were injected."""
-    name = "spectral" if backbone is None else backbone
-    if name not in LEGACY_BACKBONES:
-        raise ConfigError(f"deep_shells: backbone must be a module or a _target_ node (configs/model/backbone/), "
-                          f"or one of the legacy names {LEGACY_BACKBONES}; got {backbone!r}")
-    options = {k: legacy[k] for k in LEGACY_BACKBONE_OPTIONS if k in legacy}
-    if name == "identity":  # the descriptor went through unchanged: its length was in_channels
-        return IdentityBackbone(options.get("descriptor", "shot"), out_channels=options.get("in_channels", 352))
-    return SpectralBackbone(**options)
-
-
-def _instantiate_backbone(node: Any) -> nn.Module:
-    import hydra
-    from omegaconf import DictConfig
-
-    if not isinstance(node, (Mapping, DictConfig)) or "_target_" not in node:
-        raise ConfigError(f"deep_shells: backbone must be a torch module or a _target_ node, got {node!r}")
-    try:
-        return hydra.utils.instantiate(node, _convert_="object")
-    except hydra.errors.InstantiationException as err:
-        cause = err.__cause__
-        if isinstance(cause, ConfigError):
-            raise cause from None
-        raise ConfigError(f"deep_shells: cannot build the backbone {dict(node)!r}: {err}") from None
-
-
 class DeepShells(CorrespondenceModule):
     """Deep Shells: backbone features + differentiable smooth-shells OT (see the module docstring).
 
     Parameters
     ----------
-    backbone : nn.Module or mapping, optional
+    backbone : nn.Module, optional
         The feature extractor (a :class:`~shapecorr.nn.backbone.Backbone`: ``forward(sample, rows)``,
-        ``required_operators``), or its ``_target_`` node (instantiated here; checkpoints store it so). Default:
-        the published :class:`~shapecorr.nn.spectral_conv.SpectralBackbone`.
+        ``required_operators``; Hydra builds it from ``model/backbone``). Default: the published
+        :class:`~shapecorr.nn.spectral_conv.SpectralBackbone`.
+    loss : WeightedLoss, optional
+        The training loss (``model.loss``); its terms receive ``level_energies`` and :meth:`loss_inputs`. Needed
+        for training only.
     num_samples : int
         Vertices drawn per shape and training step (published 2000, with replacement).
-    optimizer : callable or mapping, optional
+    optimizer : callable, optional
         Optimizer factory (``model.optimizer``, a ``_partial_: true`` node); default Adam 1e-4 (published).
-    scheduler : callable or mapping, optional
+    scheduler : callable, optional
         LR-scheduler factory (``model.scheduler``); default none (published: constant rate).
     scheduler_interval : {"epoch", "step"}
         When the scheduler steps.
     layer : mapping
         :class:`~shapecorr.matching.deep_shells.DeepShellsConfig` fields (shell schedule, Sinkhorn, refinement).
-    level_weights : sequence of float, optional
-        Weights of the level energies in the loss (normalized to sum 1); ``None`` = plain mean (published).
     refine : bool
         Run the axiomatic refinement in ``match`` (published: yes).
     val_refine_levels : int, optional
@@ -160,55 +117,37 @@ class DeepShells(CorrespondenceModule):
         Base seed of the per-step vertex sampling.
     pretrained : path-like, optional
         Initial backbone weights: the original's released ``.pth`` or one of our ``.ckpt`` files (see the module
-        docstring); needs the spectral backbone with matching sizes.
-    **legacy
-        Options of old checkpoints (:data:`LEGACY_OPTIONS`), mapped with a FutureWarning.
+        docstring); needs the spectral backbone with matching sizes. Not part of the recipe a checkpoint stores
+        (it holds the weights).
     """
+
+    weight_options = ("pretrained",)
 
     def __init__(
         self,
-        backbone: nn.Module | Mapping[str, Any] | str | None = None,
+        backbone: nn.Module | None = None,
+        loss: WeightedLoss | None = None,
         num_samples: int = DeepShellsConfig.num_samples,
         optimizer: Any = None,
         scheduler: Any = None,
         scheduler_interval: str = "epoch",
         layer: Mapping[str, Any] | None = None,
-        level_weights: Sequence[float] | None = None,
         refine: bool = True,
         val_refine_levels: int | None = None,
         seed: int = 0,
         pretrained: str | PathLike | None = None,
-        **legacy: Any,
     ):
         super().__init__()
-        unknown = sorted(set(legacy) - set(LEGACY_OPTIONS))
-        if unknown:
-            raise ConfigError(f"deep_shells: unknown option(s) {unknown}")
-        if isinstance(backbone, str) or set(legacy) & set(LEGACY_BACKBONE_OPTIONS):
-            if backbone is not None and not isinstance(backbone, str):
-                raise ConfigError(f"deep_shells: the filter-bank options {sorted(set(legacy) - {'lr'})} belong to "
-                                  "the backbone node (model.backbone.*), not to the model")
-            mapped = sorted((set(legacy) - {"lr"}) | ({"backbone"} if backbone else set()))
-            warnings.warn(f"deep_shells: options {mapped} of "
-                          "an old checkpoint/config are mapped to model.backbone (configs/model/backbone/); write "
-                          "model/backbone=spectral_conv|identity and model.backbone.<option> instead",
-                          FutureWarning, stacklevel=2)
-            backbone = _legacy_backbone(backbone, legacy)
-        if "lr" in legacy:
-            if optimizer is not None:
-                raise ConfigError("deep_shells: give the learning rate as model.optimizer.lr, "
-                                  "not both lr and optimizer")
-            warnings.warn("deep_shells: option 'lr' (old checkpoint/config) is mapped to model.optimizer.lr",
-                          FutureWarning, stacklevel=2)
-            optimizer = adam(float(legacy["lr"]))
-        if backbone is None:
-            backbone = SpectralBackbone()
-        elif not isinstance(backbone, nn.Module):
-            backbone = _instantiate_backbone(backbone)
+        backbone = SpectralBackbone() if backbone is None else backbone
         if not isinstance(backbone, nn.Module):
-            raise ConfigError(f"deep_shells: backbone must be a torch module, got {type(backbone).__name__}")
-        self.optimizer = adam(DEFAULT_LR) if optimizer is None else as_factory(optimizer)
-        self.scheduler = as_factory(scheduler, "scheduler")
+            raise ConfigError(f"deep_shells: model.backbone must be a torch module (a _target_ node of "
+                              f"configs/model/backbone/), got {type(backbone).__name__}")
+        if loss is not None and not isinstance(loss, WeightedLoss):
+            raise ConfigError(f"deep_shells: model.loss must be a WeightedLoss, got {type(loss).__name__}")
+        if optimizer is not None and not callable(optimizer):
+            raise ConfigError(f"deep_shells: model.optimizer must be a _partial_: true node, got {optimizer!r}")
+        self.optimizer = adam(DEFAULT_LR) if optimizer is None else optimizer
+        self.scheduler = scheduler
         if self.lr is not None and not self.lr > 0:
             raise ConfigError(f"deep_shells: model.optimizer.lr must be positive, got {self.lr}")
         if scheduler_interval not in ("epoch", "step"):
@@ -221,29 +160,7 @@ class DeepShells(CorrespondenceModule):
         self.seed = int(seed)
         self.config = _as_config(layer, num_samples)
         self.backbone = backbone
-        # plain nodes only, so that checkpoints rebuild the model without this config (load_from_checkpoint(path))
-        self.save_hyperparameters({
-            "backbone": backbone_node(backbone),
-            "num_samples": int(num_samples),
-            "optimizer": factory_node(self.optimizer),
-            "scheduler": factory_node(self.scheduler),
-            "scheduler_interval": scheduler_interval,
-            "layer": asdict(layer) if isinstance(layer, DeepShellsConfig) else layer,
-            "level_weights": None if level_weights is None else [float(w) for w in level_weights],
-            "refine": self.refine,
-            "val_refine_levels": self.val_refine_levels,
-            "seed": self.seed,
-        })
-        n_levels = len(self.config.k_array)
-        if level_weights is None:
-            weights = torch.full((n_levels,), 1.0 / n_levels)
-        else:
-            weights = torch.as_tensor([float(w) for w in level_weights])
-            if weights.shape != (n_levels,) or (weights < 0).any() or not weights.sum() > 0:
-                raise ConfigError(f"deep_shells: level_weights must be {n_levels} non-negative numbers (one per "
-                                  f"k in layer.k_array) with a positive sum, got {list(level_weights)}")
-            weights = weights / weights.sum()
-        self.register_buffer("level_weights", weights, persistent=False)
+        self.loss = loss
         self._validating_during_fit = False
         self.pretrained = None
         if pretrained is not None:
@@ -286,7 +203,7 @@ class DeepShells(CorrespondenceModule):
             self._load_backbone_state(ckpt[LIGHTNING_STATE_KEY], path)
         else:
             load_original_deep_shells_weights(self.backbone, path)
-        self.pretrained = str(path)
+        self.pretrained = self.trained_from = str(path)
 
     def _load_backbone_state(self, state: Any, path: Path) -> None:
         if not isinstance(state, dict):
@@ -302,7 +219,8 @@ class DeepShells(CorrespondenceModule):
                               f"in/out_channels, hidden_channels, num_basis): {exc}", path=path) from None
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
-        """Record the path of the pretrained weights loaded (if any) in the checkpoint."""
+        """Write the recipe, and the path of the pretrained weights loaded (if any, provenance only)."""
+        super().on_save_checkpoint(checkpoint)
         if self.pretrained is not None:
             checkpoint[PRETRAINED_CHECKPOINT_KEY] = self.pretrained
 
@@ -338,10 +256,14 @@ class DeepShells(CorrespondenceModule):
 
     # -- training ---------------------------------------------------------------------------------------------
     def training_step(self, batch, batch_idx: int) -> torch.Tensor:
-        """Mean weighted level energy of the Deep Shells layer on random vertex samples of the pair.
+        """The loss (``model.loss``) of the Deep Shells layer's level energies on random vertex samples of the pair.
 
-        Logs the loss and the energy of each level; raises NumericalError when the loss is not finite.
+        Logs the loss, every loss term and the energy of each level; raises NumericalError when an energy is not
+        finite, ConfigError without a loss.
         """
+        if self.loss is None:
+            raise ConfigError(f"{type(self).__name__}: no loss to train with (model.loss, "
+                              "configs/model/loss/)")
         x, y = batch.x, batch.y
         gen = self.sample_generator(batch_idx)
         num = self.config.num_samples
@@ -351,27 +273,23 @@ class DeepShells(CorrespondenceModule):
                                 self.spectral_shape(y), samples_x, samples_y, self.config,
                                 return_plans=False)  # the loss needs the energies only: never form n x m plans
         energies = out.level_energies
-        loss = (self.level_weights.to(energies) * energies).sum()
-        extra = self.extra_losses(batch, out)
-        for term in extra.values():
-            loss = loss + term
-        if not torch.isfinite(loss):
-            raise NumericalError(f"deep_shells: training loss is {loss.item()} on pair {batch.name} "
-                                 f"(level energies {energies.detach().cpu().tolist()})")
+        if not torch.isfinite(energies).all():
+            raise NumericalError(f"{type(self).__name__}: level energies {energies.detach().cpu().tolist()} on "
+                                 f"pair {batch.name}")
+        total, values = self.loss(level_energies=energies, **self.loss_inputs(batch, out))
         log = dict(batch_size=1, on_step=True, on_epoch=True)
-        self.log("train/loss", loss, prog_bar=True, **log)
+        self.log("train/loss", total, prog_bar=True, **log)
         for k, e in zip(self.config.k_array, energies):
             self.log(f"train/energy_k{k}", e, **log)
-        for name, term in extra.items():
-            self.log(f"train/{name}", term, **log)
-        return loss
+        for name, value in values.items():
+            self.log(f"train/{name}", value, **log)
+        return total
 
-    def extra_losses(self, batch, out) -> dict[str, torch.Tensor]:
-        """Further weighted loss terms of a training step, ``{name: () tensor}``; none here.
+    def loss_inputs(self, batch, out) -> dict[str, torch.Tensor]:
+        """Inputs of further loss terms for a training step, by name; none here.
 
-        They are added to the loss and logged as ``train/<name>``. Subclasses (G-MSM's graph loss) read the layer
-        output ``out`` (:class:`~shapecorr.matching.deep_shells.DeepShellsOutput`: the last level's ``fmap``,
-        ``tau``).
+        Subclasses (G-MSM's graph term) read the layer output ``out``
+        (:class:`~shapecorr.matching.deep_shells.DeepShellsOutput`: the last level's ``fmap``, ``tau``).
         """
         return {}
 

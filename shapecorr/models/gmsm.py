@@ -8,9 +8,11 @@ backbone injected, ``configs/model/backbone/diffusion_net.yaml`` by default) wit
   layer, then :func:`~shapecorr.matching.deep_shells.one_level_query` at full resolution), giving both maps and
   the alignment cost; ``match`` returns its maps (G-MSM's test protocol; ``test_query="deep_shells"`` gives the
   Deep Shells test pipeline instead);
-- the graph loss (:meth:`GMSM.extra_losses`): when a graph exists, ``lambda_graph * graph_loss_scale`` times the
-  two-sided mean squared distance between the last level's ``X*`` and ``Y_k`` at full resolution over the
-  pseudo-pairs of the composed graph maps, logged as ``train/graph_loss``;
+- the graph term of the loss (``model.loss.terms.graph``, :func:`~shapecorr.losses.shells.graph_alignment_loss`,
+  weight ``lambda_graph`` = 0.5, times 2000 in the function as in the G-MSM code): when a graph exists,
+  :meth:`GMSM.loss_inputs` hands the loss the two-sided mean squared distance between the last level's ``X*`` and
+  ``Y_k`` at full resolution over the pseudo-pairs of the composed graph maps (``graph_alignment``); logged as
+  ``train/graph``;
 - :class:`ShapeGraphCallback` (added by :meth:`GMSM.configure_callbacks` when ``graph.enabled``): (re)builds the
   graph at the end of epoch ``e`` when ``e >= burn_in`` and ``e % update_every == 0`` (0-based epochs, as the
   original's loop), the queries sharded over the DDP ranks and gathered; the graph is written atomically to
@@ -27,7 +29,7 @@ import contextlib
 import os
 import zlib
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -60,9 +62,8 @@ from shapecorr.matching.deep_shells import (
 from shapecorr.matching.result import MatchResult
 from shapecorr.models.deep_shells import DeepShells
 
-#: G-MSM code: lambda_graph = 0.5, multiplied by 2000 (the subsample count) in its loss (docs/gmsm.md §5).
-DEFAULT_LAMBDA_GRAPH = 0.5
-GRAPH_LOSS_SCALE = 2000.0
+#: Name of the graph term in ``model.loss`` (its input is not computed while the term's weight is 0).
+GRAPH_TERM = "graph"
 #: File of the persisted graph, next to the checkpoints.
 GRAPH_FILE = "shape_graph.npz"
 TEST_QUERIES = ("fast", "deep_shells")
@@ -169,38 +170,27 @@ class GMSM(DeepShells):
     ----------
     graph : mapping, optional
         :class:`GraphOptions` fields.
-    lambda_graph : float
-        Weight of the graph loss (published 0.5), times ``graph_loss_scale`` (2000, G-MSM code).
-    graph_loss_scale : float
     dropout_at_test : bool
         Keep the backbone's dropout on in queries (the original's behaviour); default off (eval mode).
     test_query : {"fast", "deep_shells"}
         What ``match`` runs: the fast one-level query (G-MSM test protocol) or the Deep Shells test pipeline.
     **kwargs
-        :class:`~shapecorr.models.deep_shells.DeepShells` options (``backbone``, ``num_samples``, ``layer``, ...).
+        :class:`~shapecorr.models.deep_shells.DeepShells` options (``backbone``, ``loss``, ``num_samples``,
+        ``layer``, ...).
     """
 
-    def __init__(self, *args, graph: Mapping[str, Any] | None = None, lambda_graph: float = DEFAULT_LAMBDA_GRAPH,
-                 graph_loss_scale: float = GRAPH_LOSS_SCALE, dropout_at_test: bool = False,
+    def __init__(self, *args, graph: Mapping[str, Any] | None = None, dropout_at_test: bool = False,
                  test_query: str = "fast", **kwargs):
         super().__init__(*args, **kwargs)
         try:
             self.graph_options = GraphOptions(**dict(graph or {}))
         except TypeError as err:
             raise ConfigError(f"gmsm: invalid model.graph option: {err}") from None
-        if lambda_graph < 0 or graph_loss_scale < 0:
-            raise ConfigError(f"gmsm: lambda_graph and graph_loss_scale must be >= 0, got {lambda_graph}, "
-                              f"{graph_loss_scale}")
         if test_query not in TEST_QUERIES:
             raise ConfigError(f"gmsm: test_query must be one of {TEST_QUERIES}, got {test_query!r}")
-        self.lambda_graph = float(lambda_graph)
-        self.graph_loss_scale = float(graph_loss_scale)
         self.dropout_at_test = bool(dropout_at_test)
         self.test_query = test_query
         self.pseudo_maps: PseudoMaps | None = None
-        self.save_hyperparameters({**dict(self.hparams), "graph": asdict(self.graph_options),
-                                   "lambda_graph": self.lambda_graph, "graph_loss_scale": self.graph_loss_scale,
-                                   "dropout_at_test": self.dropout_at_test, "test_query": self.test_query})
 
     @property
     def required_operators(self) -> dict:  # type: ignore[override]
@@ -262,25 +252,24 @@ class GMSM(DeepShells):
         q = self.graph_query(x, y)
         return MatchResult(p2p=q.map_x_to_y, p2p_inv=q.map_y_to_x)
 
-    # -- the graph loss ----------------------------------------------------------------------------------------
-    def graph_loss(self, x, y, tau: torch.Tensor, pi_xy: torch.Tensor, pi_yx: torch.Tensor) -> torch.Tensor:
-        """The graph loss of a pair, ``lambda_graph * graph_loss_scale * mean |X*[a] - Y_k[b]|^2``.
+    # -- the graph term --------------------------------------------------------------------------------------
+    def graph_alignment(self, x, y, tau: torch.Tensor, pi_xy: torch.Tensor, pi_yx: torch.Tensor) -> torch.Tensor:
+        """Input of the graph term: ``mean |X*[a] - Y_k[b]|^2`` over the pseudo-pairs of the composed maps.
 
-        The mean is over the pseudo-pairs ``(i, pi_xy[i])`` and ``(pi_yx[j], j)`` from the composed maps, with
-        ``X*`` and ``Y_k`` of shell size ``tau.shape[0]`` at full resolution.
+        The mean is over ``(i, pi_xy[i])`` and ``(pi_yx[j], j)``, with ``X*`` and ``Y_k`` of shell size
+        ``tau.shape[0]`` at full resolution.
         """
         deformed, shell_y = full_resolution_shells(self.spectral_shape(x), self.spectral_shape(y), tau, self.config)
-        cost = two_sided_alignment_cost(deformed, shell_y, pi_xy.to(deformed.device), pi_yx.to(deformed.device))
-        return self.lambda_graph * self.graph_loss_scale * cost
+        return two_sided_alignment_cost(deformed, shell_y, pi_xy.to(deformed.device), pi_yx.to(deformed.device))
 
-    def extra_losses(self, batch, out) -> dict[str, torch.Tensor]:
-        """``{"graph_loss": ...}`` when the graph holds composed maps for this pair, else nothing."""
-        if self.pseudo_maps is None or self.lambda_graph == 0:
+    def loss_inputs(self, batch, out) -> dict[str, torch.Tensor]:
+        """``{"graph_alignment": ...}`` when the graph holds composed maps for this pair, else nothing."""
+        if self.pseudo_maps is None or (self.loss is not None and self.loss.weights.get(GRAPH_TERM) == 0.0):
             return {}
         found = self.pseudo_maps.lookup(batch.x.name, batch.y.name)
         if found is None:  # a self pair, or a pair without a path in the graph
             return {}
-        return {"graph_loss": self.graph_loss(batch.x, batch.y, out.tau, *found)}
+        return {"graph_alignment": self.graph_alignment(batch.x, batch.y, out.tau, *found)}
 
 
 # -- the callback ------------------------------------------------------------------------------------------
@@ -407,10 +396,9 @@ def training_ends(trainer, epoch: int) -> bool:
 
 
 __all__ = [
-    "DEFAULT_LAMBDA_GRAPH",
     "GMSM",
     "GRAPH_FILE",
-    "GRAPH_LOSS_SCALE",
+    "GRAPH_TERM",
     "GraphOptions",
     "ShapeGraphCallback",
     "graph_path",

@@ -10,7 +10,7 @@ module is thin; the pieces live elsewhere:
   times the cosine similarities, published sigma = 100);
 * interpolation: :class:`~shapecorr.nn.neuromorph.NeuroMorphInterpolator`, ``X(t) = x + t d(x, Pi y - x,
   t)`` at the training times ``t_i = i / (T + 1)``, ``i = 1 .. T + 1`` (T = :attr:`NeuroMorph.n_intermediate`);
-* loss: a :class:`~shapecorr.losses.weighted.WeightedLoss` from the ``loss`` config group (published:
+* loss: a :class:`~shapecorr.losses.weighted.WeightedLoss`, ``model.loss`` (``configs/model/loss/``; published:
   registration 1, ARAP 1 over the sequence ``[x, X(t_1), ..., X(1)]``, geodesic distortion 50). Its terms
   receive ``verts_x_deformed`` (X(1)), ``verts_y``, ``pi_x_to_y``, ``pi_y_to_x``, ``frames``, ``edges``,
   ``edge_weights`` and, while the geodesic term is active, ``dist_x`` and ``dist_y``;
@@ -63,12 +63,10 @@ from __future__ import annotations
 import dataclasses
 import functools
 import inspect
-import warnings
 from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-import hydra
 import numpy as np
 import torch
 
@@ -91,9 +89,6 @@ from shapecorr.eval.protocol import (
     unit_time_index,
 )
 from shapecorr.geometry.mesh_graph import undirected_edges
-from shapecorr.losses.arap import NEUROMORPH_DISPLACEMENT_WEIGHT, arap_sequence_loss
-from shapecorr.losses.geodesic_distortion import geodesic_distortion_loss
-from shapecorr.losses.registration import registration_loss
 from shapecorr.losses.weighted import WeightedLoss
 from shapecorr.matching.result import MatchResult
 from shapecorr.matching.softmax import (
@@ -113,8 +108,6 @@ from shapecorr.viz.interpolation import log_interpolation
 #: NeuroMorph optimizer: Adam, learning rate 1e-4, no scheduler (NeuroMorph paper, CVPR 2021, and its released
 #: training script); configs/model/optimizer/adam.yaml.
 DEFAULT_LR = 1e-4
-#: Published loss weights (NeuroMorph paper, CVPR 2021): E_align 1, E_arap 1, E_geo 50 (the latter scheduled to 0).
-DEFAULT_LOSS_WEIGHTS = {"registration": 1.0, "arap": 1.0, "geo": 50.0}
 #: ARAP edge weight per face containing the edge. The original lists each face edge once (interior edges twice);
 #: with the both-sides energy (two residuals per listed edge) 0.5 gives the original's number of residuals.
 DEFAULT_ARAP_EDGE_WEIGHT_SCALE = 0.5
@@ -122,60 +115,14 @@ DEFAULT_ARAP_EDGE_WEIGHT_SCALE = 0.5
 DEFAULT_GEO_TERM = "geo"
 #: Frames returned by ``match`` (project choice: quarter steps from x to its image on y).
 DEFAULT_INTERP_TIMES = (0.0, 0.25, 0.5, 0.75, 1.0)
-#: Options of the interpolator network (NeuroMorph code: ResnetECPos, hidden 128, 5 EdgeConv layers; pool "global"
+#: Options of the interpolation network (NeuroMorph code: ResnetECPos, hidden 128, 5 EdgeConv layers; pool "global"
 #: and residual_init "zero" are our decisions, the original's are "channel" and "original").
-DEFAULT_INTERPOLATOR = {"hidden_channels": DEFAULT_HIDDEN, "n_blocks": DEFAULT_N_BLOCKS, "pool": DEFAULT_POOL,
+DEFAULT_INTERPOLATION_NET = {"hidden_channels": DEFAULT_HIDDEN, "n_blocks": DEFAULT_N_BLOCKS, "pool": DEFAULT_POOL,
                         "residual_init": "zero"}
 #: Query remeshes kept in memory (a validation set's worth; a few hundred kB each).
 QUERY_REMESH_LRU_SIZE = 64
-#: Deep Shells settings that configs/train.yaml and configs/debug/tiny.yaml passed to every model before they
-#: moved to configs/quick/<model>.yaml; NeuroMorph checkpoints written then carry them in their hyperparameters.
-#: They are dropped with a warning; any other unknown option is an error.
-LEGACY_CHECKPOINT_OPTIONS = frozenset({"num_samples", "val_refine_levels", "layer", "num_eigs"})
-#: NeuroMorph options of checkpoints written before the backbone, the optimizer and the frame-time name became
-#: config nodes (issue 12): ``feature_dim`` / ``hidden_channels`` / ``n_blocks`` / ``pool`` build the EdgeConv
-#: backbone (the last three also the interpolator), ``lr`` an Adam optimizer, ``eval_times`` is ``interp_times``.
-#: Mapped with a warning.
-LEGACY_NETWORK_OPTIONS = ("feature_dim", "hidden_channels", "n_blocks", "pool")
-LEGACY_RENAMED_OPTIONS = frozenset({*LEGACY_NETWORK_OPTIONS, "lr", "eval_times"})
 #: Which loss terms train the soft maps (and so the feature net), see :attr:`NeuroMorph.map_gradient`.
 MAP_GRADIENT_MODES = ("all", "geodesic")
-
-
-def default_loss() -> WeightedLoss:
-    """The published NeuroMorph loss: registration 1, ARAP 1 (both-sides, detached rotations), geodesic 50."""
-    return WeightedLoss({
-        "registration": {"fn": registration_loss, "weight": DEFAULT_LOSS_WEIGHTS["registration"]},
-        "arap": {"fn": functools.partial(arap_sequence_loss, displacement_weight=NEUROMORPH_DISPLACEMENT_WEIGHT),
-                 "weight": DEFAULT_LOSS_WEIGHTS["arap"]},
-        DEFAULT_GEO_TERM: {"fn": geodesic_distortion_loss, "weight": DEFAULT_LOSS_WEIGHTS["geo"]},
-    })
-
-
-def _map_legacy_options(legacy: Mapping[str, Any], backbone, interpolator, optimizer, interp_times):
-    """Build the config nodes of a checkpoint written before they existed (see :data:`LEGACY_RENAMED_OPTIONS`)."""
-    renamed = sorted(set(legacy) & LEGACY_RENAMED_OPTIONS)
-    if not renamed:
-        return backbone, interpolator, optimizer, interp_times
-    warnings.warn(f"neuromorph: mapping old option(s) {renamed} to model.backbone (EdgeConv: feature_dim, "
-                  "hidden_channels, n_blocks, pool), model.interpolator (hidden_channels, n_blocks, pool), "
-                  "model.optimizer (lr) and model.interp_times (eval_times); checkpoints written before these "
-                  "became config nodes carry them", stacklevel=3)
-    network = {k: legacy[k] for k in LEGACY_NETWORK_OPTIONS if k in legacy}
-    if network and (backbone is not None or interpolator is not None):
-        # a config (not an old checkpoint) with both: the old keys would be silently ignored
-        raise ConfigError(f"neuromorph: {sorted(network)} are options of model.backbone and model.interpolator "
-                          "now, e.g. model.backbone.feature_dim=64 model.interpolator.n_blocks=4")
-    if "lr" in legacy and optimizer is not None:
-        raise ConfigError("neuromorph: model.lr is model.optimizer.lr now, e.g. model.optimizer.lr=3e-4")
-    if network:
-        backbone = EdgeConvBackbone(**network)
-        interpolator = {k: network[k] for k in ("hidden_channels", "n_blocks", "pool") if k in network}
-    if "lr" in legacy:
-        optimizer = adam(float(legacy["lr"]))
-    if "eval_times" in legacy:
-        interp_times = legacy["eval_times"]
-    return backbone, interpolator, optimizer, interp_times
 
 
 class _NonZeroAt:
@@ -202,22 +149,19 @@ class NeuroMorph(CorrespondenceModule):
 
     Parameters
     ----------
-    backbone : Backbone or mapping, optional
-        The feature extractor (Hydra: the ``model/backbone`` node, published ``edgeconv``); a mapping is a
-        ``_target_`` config built here (what checkpoints store); default :class:`EdgeConvBackbone` with the
-        published options.
+    backbone : Backbone, optional
+        The feature extractor (Hydra: the ``model/backbone`` node, published ``edgeconv``); default
+        :class:`EdgeConvBackbone` with the published options.
     loss : WeightedLoss, optional
-        The training loss (Hydra: the ``loss`` group); default :func:`default_loss` (published). Not stored
-        in the checkpoint's hyperparameters: a model loaded with ``load_from_checkpoint`` (evaluation) gets
-        the default.
-    interpolator : mapping, optional
-        Options of the interpolator network :class:`~shapecorr.nn.neuromorph.NeuroMorphInterpolator`:
+        The training loss (``model.loss``, ``configs/model/loss/neuromorph.yaml``); needed for training only.
+    interpolation_net : mapping, optional
+        Options of the interpolation network :class:`~shapecorr.nn.neuromorph.NeuroMorphInterpolator`:
         ``hidden_channels``, ``n_blocks``, ``pool``, ``residual_init`` (published 128, 5; pool "global" and
         residual_init "zero" our decisions, "channel" / "original" the original code's, see
         :class:`~shapecorr.nn.edgeconv.ResnetBlockFC`).
     optimizer, scheduler
         Optimizer / LR-scheduler factories (``model/optimizer``, ``model/scheduler`` nodes, ``_partial_``);
-        default Adam 1e-4 (published), no scheduler. Not stored in the hyperparameters.
+        default Adam 1e-4 (published), no scheduler.
     sigma : float
         Softmax inverse temperature (published 100).
     n_intermediate : int
@@ -254,16 +198,13 @@ class NeuroMorph(CorrespondenceModule):
         ``~/.cache/shapecorr``.
     seed : int
         Base seed of the augmentation draws and remesh pools.
-    **legacy_options
-        Options of older checkpoints (:data:`LEGACY_RENAMED_OPTIONS`: mapped with a warning;
-        :data:`LEGACY_CHECKPOINT_OPTIONS`: dropped with a warning); anything else is an error.
     """
 
     def __init__(
         self,
-        backbone: Backbone | Mapping[str, Any] | None = None,
+        backbone: Backbone | None = None,
         loss: WeightedLoss | None = None,
-        interpolator: Mapping[str, Any] | None = None,
+        interpolation_net: Mapping[str, Any] | None = None,
         optimizer=None,
         scheduler=None,
         sigma: float = DEFAULT_SIGMA,
@@ -278,38 +219,18 @@ class NeuroMorph(CorrespondenceModule):
         match_chunk_size: int = DEFAULT_CHUNK_SIZE,
         cache_dir: str | None = None,
         seed: int = 0,
-        **legacy_options: Any,
     ):
         super().__init__()
-        unknown = sorted(set(legacy_options) - LEGACY_CHECKPOINT_OPTIONS - LEGACY_RENAMED_OPTIONS)
-        if unknown:
-            # A clear message instead of instantiate's TypeError.
-            raise ConfigError(f"neuromorph: unknown option(s) {unknown}")
-        dropped = sorted(set(legacy_options) & LEGACY_CHECKPOINT_OPTIONS)
-        if dropped:
-            warnings.warn(f"neuromorph: ignoring Deep Shells option(s) {dropped}: they mean nothing "
-                          "to NeuroMorph (checkpoints written before configs/quick/ existed carry them)",
-                          stacklevel=2)
-        backbone, interpolator, optimizer, interp_times = _map_legacy_options(
-            legacy_options, backbone, interpolator, optimizer, interp_times)
-        if isinstance(backbone, Mapping):
-            backbone = hydra.utils.instantiate(dict(backbone), _convert_="object")
         if backbone is None:
             backbone = EdgeConvBackbone()
         if not isinstance(backbone, Backbone):
             raise ConfigError(f"neuromorph: model.backbone must be a Backbone module (a _target_ node of "
                               f"configs/model/backbone/), got {type(backbone).__name__}")
-        interpolator = {**DEFAULT_INTERPOLATOR, **dict(interpolator or {})}
-        bad = sorted(set(interpolator) - set(DEFAULT_INTERPOLATOR))
+        net = {**DEFAULT_INTERPOLATION_NET, **dict(interpolation_net or {})}
+        bad = sorted(set(net) - set(DEFAULT_INTERPOLATION_NET))
         if bad:
-            raise ConfigError(f"neuromorph: unknown model.interpolator option(s) {bad}; allowed: "
-                              f"{sorted(DEFAULT_INTERPOLATOR)}")
-        self.save_hyperparameters(ignore=["loss", "backbone", "optimizer", "scheduler", *legacy_options])
-        # What load_from_checkpoint needs to rebuild the backbone (a _target_ node), when the backbone says it.
-        spec = getattr(backbone, "config", None)
-        self.hparams["backbone"] = spec() if callable(spec) else None
-        self.hparams["interpolator"] = interpolator
-        self.hparams["interp_times"] = list(interp_times)
+            raise ConfigError(f"neuromorph: unknown model.interpolation_net option(s) {bad}; allowed: "
+                              f"{sorted(DEFAULT_INTERPOLATION_NET)}")
         if not sigma > 0:
             raise ConfigError(f"neuromorph: sigma must be positive, got {sigma}")
         if arap_edge_weight_scale is not None and not arap_edge_weight_scale > 0:
@@ -323,10 +244,10 @@ class NeuroMorph(CorrespondenceModule):
             raise ConfigError(f"neuromorph: loss must be a WeightedLoss, got {type(loss).__name__}")
         self.feature_net = backbone
         self._backbone_takes_edges = "edges" in inspect.signature(backbone.forward).parameters
-        self.interpolator = NeuroMorphInterpolator(int(interpolator["hidden_channels"]),
-                                                   int(interpolator["n_blocks"]), str(interpolator["pool"]),
-                                                   str(interpolator["residual_init"]))
-        self.loss = default_loss() if loss is None else loss
+        # the interpolation network (model.interpolation_net options; parameters named interpolator.*)
+        self.interpolator = NeuroMorphInterpolator(int(net["hidden_channels"]), int(net["n_blocks"]),
+                                                   str(net["pool"]), str(net["residual_init"]))
+        self.loss = loss
         self.optimizer = adam(DEFAULT_LR) if optimizer is None else optimizer
         self.scheduler = scheduler
         self.sigma = float(sigma)
@@ -337,6 +258,11 @@ class NeuroMorph(CorrespondenceModule):
         self.geo_term = str(geo_term)
         self.augment = AugmentationConfig.from_options(augment)
         self.query_resolution = None if query_resolution is None else int(query_resolution)
+        needs = dict(getattr(backbone, "required_operators", None) or {})
+        if needs:  # training pairs are augmented copies (rotated, remeshed), queries may run on remeshes
+            raise ConfigError(f"neuromorph: the {type(backbone).__name__} backbone reads per-shape operators "
+                              f"{sorted(needs)}, which NeuroMorph's augmented and remeshed shapes do not carry; use "
+                              "a backbone that needs none (model/backbone=edgeconv)")
         self.geodesics = str(geodesics)
         self.match_chunk_size = int(match_chunk_size)
         self.cache_dir = cache_dir
@@ -376,8 +302,8 @@ class NeuroMorph(CorrespondenceModule):
 
     @property
     def lambda_geo(self) -> float:
-        """Current weight of the geodesic-distortion term (0 when the loss has no such term)."""
-        return float(self.loss.weights.get(self.geo_term, 0.0))
+        """Current weight of the geodesic-distortion term (0 when the loss has no such term, or no loss)."""
+        return 0.0 if self.loss is None else float(self.loss.weights.get(self.geo_term, 0.0))
 
     # -- caches -------------------------------------------------------------------------------------------
     def shape_cache(self) -> ShapeCache:
@@ -461,8 +387,10 @@ class NeuroMorph(CorrespondenceModule):
     def training_step(self, batch, batch_idx: int) -> torch.Tensor:
         """Loss of one (augmented) training pair: interpolate x towards y and log the loss terms and schedules.
 
-        Raises NumericalError when the loss is not finite.
+        Raises NumericalError when the loss is not finite, ConfigError without a loss.
         """
+        if self.loss is None:
+            raise ConfigError("neuromorph: no loss to train with (model.loss, configs/model/loss/)")
         use_geo = self.lambda_geo != 0.0
         if isinstance(batch, AugmentedPair):  # augmented on the data side (AugmentedPairDataset)
             aug = batch

@@ -11,7 +11,8 @@ A backbone is an :class:`torch.nn.Module` with
   module computes (and caches) exactly that.
 
 Models take the module itself (``hydra.utils.instantiate`` builds it from ``configs/model/backbone/<name>.yaml``),
-never a string naming it, so a new backbone is one module plus one config file (``docs/architecture.md``).
+never a string naming it, so a new backbone is one module plus one config file (``docs/architecture.md`` §4). A
+checkpoint rebuilds it from the model's recipe (:mod:`shapecorr.models.recipe`): a backbone records nothing.
 """
 
 from __future__ import annotations
@@ -40,26 +41,10 @@ class Backbone(nn.Module):
         """Features ``(n, C)`` at every vertex, or ``(len(rows), C)`` at the vertices ``rows (r,)`` int64."""
         raise NotImplementedError
 
-    #: Constructor arguments of this instance (plain values), set by subclasses: with the class they rebuild the
-    #: backbone, so that a model checkpoint records its backbone as a ``_target_`` node (:func:`backbone_node`).
-    init_args: Mapping[str, Any] | None = None
-
     @property
     def trainable(self) -> bool:
         """Whether the backbone has parameters to learn (the identity backbone has none)."""
         return any(p.requires_grad for p in self.parameters())
-
-
-def backbone_node(module: nn.Module) -> dict[str, Any] | None:
-    """The ``_target_`` node that rebuilds ``module`` (``hydra.utils.instantiate``).
-
-    None when it does not record its constructor arguments (:attr:`Backbone.init_args`).
-    """
-    args = getattr(module, "init_args", None)
-    if args is None:
-        return None
-    cls = type(module)
-    return {"_target_": f"{cls.__module__}.{cls.__qualname__}", **dict(args)}
 
 
 def sample_descriptor(sample, name: str, who: str) -> torch.Tensor:

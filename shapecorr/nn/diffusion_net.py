@@ -348,15 +348,6 @@ class DiffusionNetBackbone(Backbone):
         if self.input_features != XYZ_INPUT:
             request[self.input_features] = dict(descriptor_params or {})
         self.required_operators = request
-        # recorded so that a model checkpoint rebuilds this backbone (shapecorr.nn.backbone.backbone_node)
-        self.init_args = {
-            "input_features": self.input_features, "in_channels": int(in_channels),
-            "descriptor_params": None if descriptor_params is None else dict(descriptor_params),
-            "k_eig": self.k_eig, "out_channels": self.out_channels, "width": int(width), "n_blocks": int(n_blocks),
-            "mlp_hidden": None if mlp_hidden is None else [int(h) for h in mlp_hidden], "dropout": float(dropout),
-            "with_gradient_features": bool(with_gradient_features),
-            "with_gradient_rotations": bool(with_gradient_rotations), "last_activation": last_activation,
-        }
 
     def _input(self, sample, dtype, device) -> torch.Tensor:
         if self.input_features == XYZ_INPUT:

@@ -58,12 +58,6 @@ class EdgeConvBackbone(NeuroMorphFeatureNet, Backbone):
             raise ConfigError(f"model.backbone.pool must be one of {POOL_MODES}, got {pool!r}")
         super().__init__(int(feature_dim), int(hidden_channels), int(n_blocks), str(pool), str(residual_init))
         self.out_channels = int(feature_dim)
-        self._options = {"feature_dim": int(feature_dim), "hidden_channels": int(hidden_channels),
-                         "n_blocks": int(n_blocks), "pool": str(pool), "residual_init": str(residual_init)}
-
-    def config(self) -> dict:
-        """The ``_target_`` node that rebuilds this backbone (stored in checkpoints' hyperparameters)."""
-        return {"_target_": f"{type(self).__module__}.{type(self).__qualname__}", **self._options}
 
     def forward_arrays(self, verts: torch.Tensor, faces: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
         """The network on raw arrays, ``verts (n, 3)``, ``faces (f, 3)``, undirected ``edges (E, 2)``: ``(n, C)``.

@@ -33,7 +33,6 @@ class IdentityBackbone(Backbone):
             raise ConfigError(f"identity backbone: out_channels must be >= 1, got {out_channels}")
         self.descriptor = str(descriptor)
         self.out_channels = int(out_channels)
-        self.init_args = {"descriptor": self.descriptor, "out_channels": self.out_channels}
 
     @property
     def required_operators(self) -> dict:  # type: ignore[override]

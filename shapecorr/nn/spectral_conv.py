@@ -328,10 +328,6 @@ class SpectralBackbone(Backbone, SpectralFilterBank):
         SpectralFilterBank.__init__(self, in_channels, out_channels, tuple(hidden_channels), num_basis, num_eigs,
                                     max_frequency, activation)
         self.descriptor = str(descriptor)
-        self.init_args = {"descriptor": self.descriptor, "in_channels": int(in_channels),
-                          "out_channels": int(out_channels), "hidden_channels": [int(h) for h in hidden_channels],
-                          "num_basis": int(num_basis), "num_eigs": int(num_eigs),
-                          "max_frequency": float(max_frequency), "activation": str(activation)}
 
     @property
     def required_operators(self) -> dict:  # type: ignore[override]

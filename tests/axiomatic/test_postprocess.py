@@ -117,8 +117,12 @@ def test_required_operators_merge_and_validation():
 
 def test_postprocess_config_defaults_are_the_published_layered_matching(compose_config):
     cfg = compose_config("evaluate", overrides=["model=descriptor_nn", "postprocess=smooth_shells"])
-    settings = {k: v for k, v in cfg.postprocess.items() if k not in ("_target_", "_partial_", "k_start")}
+    settings = {k: v for k, v in cfg.postprocess.items()
+                if k not in ("_target_", "_partial_", "k_start", "interp_times")}
     published = asdict(SmoothShellsConfig())
+    # the settings are model=smooth_shells's (inherited, not restated)
+    model = compose_config("evaluate", overrides=["model=smooth_shells"]).model
+    assert settings == {k: v for k, v in model.items() if k not in ("_target_", "interp_times")}
     assert settings and all(published[k] == (tuple(v) if isinstance(v, list) else v) for k, v in settings.items())
     assert cfg.postprocess.k_start == 20
     assert compose_config("evaluate", overrides=["model=descriptor_nn"]).get("postprocess") is None

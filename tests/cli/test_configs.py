@@ -68,3 +68,44 @@ def test_experiment_config_composes_and_instantiates(name, compose_config, monke
     trainer = instantiate(cfg.trainer, logger=False, enable_checkpointing=False, default_root_dir=str(tmp_path))
     assert trainer.max_epochs == cfg.trainer.max_epochs
     assert trainer.accumulate_grad_batches == cfg.trainer.accumulate_grad_batches
+
+
+LOSSES = sorted(p.stem for p in (CONFIGS / "model" / "loss").glob("*.yaml"))
+POSTPROCESS = sorted(p.stem for p in (CONFIGS / "postprocess").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("name", LOSSES)
+def test_loss_config_composes_into_the_model_node(name, compose_config):
+    from shapecorr.losses.weighted import WeightedLoss
+
+    cfg = compose_config("train", ["model=deep_shells", f"model/loss={name}"])
+    loss = instantiate(cfg.model.loss, _convert_="object")
+    assert isinstance(loss, WeightedLoss) and loss.weights
+
+
+@pytest.mark.parametrize("name", POSTPROCESS)
+def test_postprocess_config_wraps_a_matcher(name, compose_config):
+    cfg = compose_config("evaluate", ["model=descriptor_nn", f"postprocess={name}"])
+    matcher = instantiate(cfg.model, _convert_="object")
+    wrapped = instantiate(cfg.postprocess, _convert_="object")(matcher=matcher)
+    assert isinstance(wrapped, Matcher) and wrapped.matcher is matcher
+
+
+def test_losses_live_in_the_model_node():
+    # every loss lives in its model's node (configs/model/loss/), not in a group of its own
+    assert not (CONFIGS / "loss").exists()
+    assert LOSSES and POSTPROCESS
+
+
+@pytest.mark.parametrize("name", ["deep_shells", "deep_shells_published", "gmsm"])
+def test_run_presets_reach_only_the_models_that_have_them(name, compose_config):
+    """preset=quick / tiny: each model config applies its own settings (configs/quick/<family>/); variants inherit."""
+    published = compose_config("evaluate", [f"model={name}"]).model
+    quick = compose_config("train", [f"model={name}"]).model
+    tiny = compose_config("train", [f"model={name}", "debug=tiny"]).model
+    assert published.num_samples == 2000 and quick.num_samples == 400 and tiny.num_samples == 100
+    assert compose_config("train", [f"model={name}", "preset=full"]).model == published
+    if name == "gmsm":
+        assert quick.graph.burn_in == 0 and published.graph.burn_in == 100
+    neuromorph = compose_config("train", ["model=neuromorph", "debug=tiny"]).model
+    assert neuromorph == compose_config("evaluate", ["model=neuromorph"]).model

@@ -28,8 +28,8 @@ SCALARS = ("mean_deformation_conformal_distortion", "mean_volume_score", "mean_c
 #: Per method: the overrides of a fit that takes seconds on 162 vertices.
 METHODS = {
     "neuromorph": ["model=neuromorph", "model.backbone.feature_dim=8", "model.backbone.hidden_channels=8",
-                   "model.backbone.n_blocks=2", "model.interpolator.hidden_channels=8",
-                   "model.interpolator.n_blocks=2"],
+                   "model.backbone.n_blocks=2", "model.interpolation_net.hidden_channels=8",
+                   "model.interpolation_net.n_blocks=2"],
     "divfree": ["model=divfree", "model.modes=[2]", "model.samples=[60]", "model.iterations=[3]", "model.lr=[0.01]",
                 "model.descriptor_weight=[0]", "model.n_steps=4"],
     "hamiltonian": ["model=hamiltonian", "model.n_modes=2", "model.iterations=3", "model.samples=60",

@@ -44,10 +44,10 @@ def test_default_run_trains_on_the_small_synthetic_set(tmp_path, _cfg, compose_c
     tiny = _cfg(tmp_path, "debug=tiny")
     assert dict(tiny.data.synthetic) == {"preset": "tiny", "seed": 0}
     assert Path(tiny.data.root).name == "tiny_seed0"
-    # the model's quick settings (configs/quick/<model>.yaml, debug=tiny: <model>_tiny.yaml)
+    # the model's quick settings (configs/quick/deep_shells/quick.yaml, debug=tiny: tiny.yaml)
     default = _cfg(tmp_path)
     assert default.model.num_samples == 400 and default.model.layer.refine_levels == 12
-    assert tiny.model.num_samples == 100 and tiny.model.backbone.num_eigs == 40 and tiny.model.layer.refine_levels == 4
+    assert tiny.model.num_samples == 100 and tiny.model.layer.refine_levels == 4
     published = _cfg(tmp_path, "model=deep_shells_published", "debug=tiny")
     assert published.model.num_samples == 100 and published.model.layer.smooth_x == "hard"
     # the published experiment is untouched by the quick defaults

@@ -50,7 +50,7 @@ def test_train_cli_tiny(cache_dir, tmp_path):
     assert any(p.name != "last.ckpt" for p in ckpts.glob("*.ckpt"))  # the periodic one (every epoch)
     assert list((run_dir / "tensorboard").glob("events.out.tfevents.*"))
     state = torch.load(ckpts / "last.ckpt", map_location="cpu", weights_only=False)
-    assert state["hyper_parameters"]["num_samples"] == 100  # debug=tiny reached the model
+    assert state["model_recipe"]["num_samples"] == 100  # debug=tiny reached the model (its recipe)
 
 
 def test_train_cli_missing_checkpoint_is_a_clean_error(tmp_path):

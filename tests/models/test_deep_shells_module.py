@@ -7,6 +7,7 @@ at corresponding points) standing in for SHOT, which keeps the tests independent
 
 from __future__ import annotations
 
+from functools import partial
 
 import numpy as np
 import pytest
@@ -18,6 +19,8 @@ from shapecorr.data.datasets import PairSample, ShapeSample
 from shapecorr.data.shape import make_shape
 from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.geometry.laplace_beltrami import eigenbasis
+from shapecorr.losses.shells import level_energy_loss
+from shapecorr.losses.weighted import WeightedLoss
 from shapecorr.models.deep_shells import DeepShells
 from shapecorr.nn.identity import IdentityBackbone
 from shapecorr.nn.spectral_conv import SpectralBackbone
@@ -30,9 +33,16 @@ SMALL_LAYER = dict(num_samples=150, refine=True,
                    layer=dict(k_array=[6, 8, 10], refine_k_min=6, refine_k_max=25, refine_levels=4))
 
 
+def shells_loss(level_weights=None, **terms) -> WeightedLoss:
+    """The Deep Shells loss (configs/model/loss/deep_shells.yaml) with the given level weights, plus ``terms``."""
+    fn = partial(level_energy_loss, level_weights=level_weights)
+    return WeightedLoss({"shells": {"fn": fn, "weight": 1.0}, **terms})
+
+
 def small(**overrides) -> DeepShells:
-    """A small model with a fresh spectral backbone (``backbone=`` another one)."""
-    return DeepShells(**{"backbone": SpectralBackbone(**SMALL_BACKBONE), **SMALL_LAYER, **overrides})
+    """A small model with a fresh spectral backbone (``backbone=`` another one) and the published loss."""
+    return DeepShells(**{"backbone": SpectralBackbone(**SMALL_BACKBONE), "loss": shells_loss(), **SMALL_LAYER,
+                         **overrides})
 
 
 def identity() -> IdentityBackbone:
@@ -83,7 +93,7 @@ def test_training_step_finite_loss_and_gradients(pair):
 def test_level_weights_select_levels(pair):
     batch, _ = pair
     uniform = small()
-    last = small(level_weights=[0.0, 0.0, 2.0])
+    last = small(loss=shells_loss([0.0, 0.0, 2.0]))
     last.load_state_dict(uniform.state_dict())
     # same samples (same seed, epoch, batch index): the one-hot loss is the last level's energy
     from shapecorr.matching.deep_shells import deep_shells_layer, random_samples
@@ -97,7 +107,14 @@ def test_level_weights_select_levels(pair):
         assert torch.allclose(uniform.training_step(batch, 3), out.level_energies.mean(), rtol=1e-5)
         assert torch.allclose(last.training_step(batch, 3), out.level_energies[-1], rtol=1e-5)
     with pytest.raises(ConfigError, match="level_weights"):
-        small(level_weights=[1.0, 1.0])
+        small(loss=shells_loss([1.0, 1.0])).training_step(batch, 3)
+    # the term's weight scales the loss (loss.terms.shells.weight=, and the loss schedules)
+    half = small(loss=WeightedLoss({"shells": {"fn": level_energy_loss, "weight": 0.5}}))
+    half.load_state_dict(uniform.state_dict())
+    with torch.no_grad():
+        assert torch.allclose(half.training_step(batch, 3), 0.5 * out.level_energies.mean(), rtol=1e-5)
+    with pytest.raises(ConfigError, match="model.loss"):
+        small(loss=None).training_step(batch, 3)
 
 
 def test_sample_generator_depends_on_seed_epoch_batch():
@@ -157,68 +174,24 @@ def test_required_operators():
 def test_invalid_options_raise_config_error():
     with pytest.raises(ConfigError, match="backbone"):
         DeepShells(backbone="resnet")
-    with pytest.raises(ConfigError, match="backbone"):
-        DeepShells(backbone={"not": "a node"})
     with pytest.raises(ConfigError, match="layer option"):
         DeepShells(layer={"not_an_option": 1})
     with pytest.raises(ConfigError, match="lr"):
-        DeepShells(optimizer={"_target_": "torch.optim.Adam", "_partial_": True, "lr": 0.0})
-    with pytest.raises(ConfigError, match="unknown option"):
-        DeepShells(in_channel=3)
-    with pytest.raises(ConfigError, match="backbone node"):
-        DeepShells(backbone=IdentityBackbone(), num_eigs=30)
-
-
-def test_checkpoint_roundtrip_without_arguments(tmp_path):
-    from functools import partial
-
-    import pytorch_lightning as pl
-
-    model = small(optimizer=partial(torch.optim.Adam, lr=3e-4),
-                  scheduler=partial(torch.optim.lr_scheduler.StepLR, step_size=5))
-    path = tmp_path / "m.ckpt"
-    torch.save({"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams),
-                "pytorch-lightning_version": pl.__version__}, path)
-    loaded = DeepShells.load_from_checkpoint(str(path))
-    assert loaded.lr == 3e-4 and loaded.config == model.config
-    assert isinstance(loaded.backbone, SpectralBackbone) and loaded.backbone.init_args == model.backbone.init_args
-    sched = loaded.configure_optimizers()["lr_scheduler"]["scheduler"]
-    assert isinstance(sched, torch.optim.lr_scheduler.StepLR) and sched.step_size == 5
-    for (name, a), (_, b) in zip(model.state_dict().items(), loaded.state_dict().items()):
-        assert torch.equal(a, b), name
-
-
-def test_old_checkpoints_with_flat_backbone_options_load_with_a_warning(tmp_path, pair):
-    import pytorch_lightning as pl
-
-    model = small()
-    # the hyperparameters DeepShells wrote before backbones were injected
-    old = {"backbone": "spectral", "descriptor": "shot", **SMALL_BACKBONE, "hidden_channels": [], "num_basis": 16,
-           "max_frequency": 25000.0, "activation": "relu", "lr": 3e-4, **SMALL_LAYER, "level_weights": None,
-           "val_refine_levels": None, "seed": 0}
-    path = tmp_path / "old.ckpt"
-    torch.save({"state_dict": model.state_dict(), "hyper_parameters": old,
-                "pytorch-lightning_version": pl.__version__}, path)
-    with pytest.warns(FutureWarning, match="model.backbone"):
-        loaded = DeepShells.load_from_checkpoint(str(path))
-    assert loaded.lr == 3e-4 and loaded.backbone.init_args == model.backbone.init_args
-    batch, _ = pair
-    with torch.no_grad():
-        assert torch.equal(loaded.features(batch.x), model.features(batch.x))
-    ident = tmp_path / "old_identity.ckpt"
-    torch.save({"state_dict": {}, "hyper_parameters": {**old, "backbone": "identity", "in_channels": N_CHANNELS},
-                "pytorch-lightning_version": pl.__version__}, ident)
-    with pytest.warns(FutureWarning):
-        loaded = DeepShells.load_from_checkpoint(str(ident))
-    assert isinstance(loaded.backbone, IdentityBackbone) and not loaded.backbone.trainable
+        DeepShells(optimizer=partial(torch.optim.Adam, lr=0.0))
+    with pytest.raises(ConfigError, match="model.loss"):
+        DeepShells(loss=level_energy_loss)
+    with pytest.raises(TypeError):
+        DeepShells(num_eigs=30)  # backbone options belong to model.backbone
 
 
 def test_configs_compose_and_instantiate(tmp_path, compose_config):
     cfg = compose_config("train", [f"paths.cache_dir={tmp_path}", "paths.output_dir=" + str(tmp_path),
-                                   "model.optimizer.lr=0.001", "model.level_weights=[0,0,0,0,1,1,1,1]"])
+                                   "model.optimizer.lr=0.001",
+                                   "model.loss.terms.shells.fn.level_weights=[0,0,0,0,1,1,1,1]"])
     model = instantiate(cfg.model, _convert_="object")
     assert isinstance(model, DeepShells) and model.lr == 1e-3
-    assert torch.allclose(model.level_weights, torch.tensor([0, 0, 0, 0, 0.25, 0.25, 0.25, 0.25]))
+    energies = torch.arange(8.0)
+    assert float(model.loss(level_energies=energies)[0]) == pytest.approx(float(energies[4:].mean()))
     assert cfg.trainer.accelerator == "cpu" and cfg.logger._target_.endswith("TensorBoardLogger")
     trainer = instantiate(cfg.trainer, logger=False, enable_checkpointing=False)
     assert trainer.max_epochs == cfg.trainer.max_epochs
@@ -236,4 +209,4 @@ def test_configs_compose_and_instantiate(tmp_path, compose_config):
         ev = instantiate(ev_cfg.model, _convert_="object")
         assert isinstance(ev.backbone, IdentityBackbone) and not ev.backbone.trainable
     tiny = instantiate(compose_config("train", ["debug=tiny"]).model, _convert_="object")
-    assert isinstance(tiny.backbone, SpectralBackbone) and tiny.backbone.num_eigs == 40
+    assert isinstance(tiny.backbone, SpectralBackbone) and tiny.backbone.num_eigs == 200

@@ -79,8 +79,7 @@ def test_lightning_checkpoint_weights_roundtrip(tmp_path):
     with torch.no_grad():
         source.backbone.layers[0].weight.add_(1.0)
     ckpt = tmp_path / "epoch001.ckpt"
-    torch.save({"state_dict": source.state_dict(), "hyper_parameters": dict(source.hparams),
-                "pytorch-lightning_version": pl.__version__}, ckpt)
+    torch.save({"state_dict": source.state_dict(), "pytorch-lightning_version": pl.__version__}, ckpt)
     model = small(pretrained=ckpt)
     for name, value in source.backbone.state_dict().items():
         assert torch.equal(value, model.backbone.state_dict()[name]), name
@@ -95,21 +94,23 @@ def test_lightning_checkpoint_weights_roundtrip(tmp_path):
 
 
 def test_checkpoint_of_a_pretrained_model_loads_without_the_file(tmp_path):
-    import pytorch_lightning as pl
+    from shapecorr.models.recipe import build_model, load_model
 
     weights = tmp_path / "ckpt.pth"
     _original_file(weights, seed=3)
-    model = small(pretrained=weights)
-    assert "pretrained" not in model.hparams
-    checkpoint = {"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams),
-                  "pytorch-lightning_version": pl.__version__}
+    node = {"_target_": "shapecorr.models.deep_shells.DeepShells", "pretrained": str(weights),
+            "backbone": {"_target_": "shapecorr.nn.spectral_conv.SpectralBackbone", **SMALL_BACKBONE}}
+    model = build_model(node)
+    assert model.trained_from == str(weights)
+    checkpoint = {"state_dict": model.state_dict()}
     model.on_save_checkpoint(checkpoint)
     assert checkpoint[PRETRAINED_CHECKPOINT_KEY] == str(weights)
+    assert checkpoint["model_recipe"]["pretrained"] is None  # the checkpoint holds the weights
     path = tmp_path / "trained.ckpt"
     torch.save(checkpoint, path)
     weights.unlink()
-    loaded = DeepShells.load_from_checkpoint(str(path))
-    assert loaded.pretrained is None
+    loaded = load_model(path)
+    assert loaded.pretrained is None and loaded.trained_from == str(path)
     assert torch.equal(loaded.backbone.layers[0].weight, model.backbone.layers[0].weight)
 
 

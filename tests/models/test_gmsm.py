@@ -26,8 +26,11 @@ from shapecorr.data.shape import make_shape
 from shapecorr.eval.protocol import shard_pairs
 from shapecorr.geometry.diffusion_operators import GRADIENT_RIDGE, diffusion_gradients
 from shapecorr.geometry.laplace_beltrami import eigenbasis
+from shapecorr.losses.shells import graph_alignment_loss, level_energy_loss
+from shapecorr.losses.weighted import WeightedLoss
 from shapecorr.matching.deep_shells import full_resolution_shells
 from shapecorr.models.deep_shells import DeepShells
+from shapecorr.models.schedules import LossWeightSchedule
 from shapecorr.models.gmsm import (
     GMSM,
     GRAPH_FILE,
@@ -80,9 +83,15 @@ class _Shapes:
         return self.samples[i]
 
 
+def _loss(graph_weight: float = 0.5) -> WeightedLoss:
+    """The G-MSM loss of configs/model/loss/gmsm.yaml (level energies + graph term, lambda_graph 0.5 x 2000)."""
+    return WeightedLoss({"shells": {"fn": level_energy_loss, "weight": 1.0},
+                         "graph": {"fn": graph_alignment_loss, "weight": graph_weight}})
+
+
 def _gmsm(**overrides) -> GMSM:
     torch.manual_seed(0)
-    return GMSM(**{"backbone": DiffusionNetBackbone(**BACKBONE), **LAYER, **overrides})
+    return GMSM(**{"backbone": DiffusionNetBackbone(**BACKBONE), "loss": _loss(), **LAYER, **overrides})
 
 
 def test_diffusion_gradients_operator_registered_and_cached(tmp_path, shapes):
@@ -110,7 +119,7 @@ def test_graph_off_is_pairwise_deep_shells(shapes):
     batch = PairSample(shapes[0], shapes[1])
     gmsm = _gmsm(graph={"enabled": False})
     torch.manual_seed(0)
-    pairwise = DeepShells(backbone=DiffusionNetBackbone(**BACKBONE), **LAYER)
+    pairwise = DeepShells(backbone=DiffusionNetBackbone(**BACKBONE), loss=_loss(), **LAYER)
     assert gmsm.configure_callbacks() == []
     for m in (gmsm, pairwise):
         m.train()
@@ -123,7 +132,17 @@ def test_graph_off_is_pairwise_deep_shells(shapes):
     gmsm.set_graph(["s0", "s1"], {(0, 1): torch.randint(0, 162, (162,)).numpy(),
                                   (1, 0): torch.randint(0, 162, (162,)).numpy()}, epoch=0)
     torch.manual_seed(1)
-    assert gmsm.training_step(batch, 3) > loss_p
+    with_graph = gmsm.training_step(batch, 3)
+    assert with_graph > loss_p
+    # the graph term is a loss term: its weight scales it (loss.terms.graph.weight=, loss schedules)
+    gmsm.loss.set_weight("graph", 1.0)
+    torch.manual_seed(1)
+    doubled = gmsm.training_step(batch, 3)
+    torch.testing.assert_close(doubled - loss_p, 2 * (with_graph - loss_p), rtol=1e-4, atol=0)
+    LossWeightSchedule("graph", [[0, 0.5], [2, 0.0]]).apply(gmsm, 2)  # a schedule switches the term off
+    assert gmsm.loss.weights["graph"] == 0.0
+    torch.manual_seed(1)
+    assert torch.equal(gmsm.training_step(batch, 3), loss_p)
 
 
 def test_graph_loss_hand_computation_and_prediction_beats_random(shapes):
@@ -131,11 +150,12 @@ def test_graph_loss_hand_computation_and_prediction_beats_random(shapes):
     x, y = shapes[0], shapes[1]
     tau = torch.randn(14, 3) * 0.01
     q = model.graph_query(x, y)
-    loss = model.graph_loss(x, y, tau, q.map_x_to_y, q.map_y_to_x)
+    loss = model.loss(level_energies=torch.zeros(3),
+                      graph_alignment=model.graph_alignment(x, y, tau, q.map_x_to_y, q.map_y_to_x))[1]["graph"]
     deformed, shell_y = full_resolution_shells(model.spectral_shape(x), model.spectral_shape(y), tau, model.config)
     by_hand = torch.cat([((deformed[i] - shell_y[q.map_x_to_y[i]]) ** 2).sum()[None] for i in range(162)] +
                         [((deformed[q.map_y_to_x[j]] - shell_y[j]) ** 2).sum()[None] for j in range(162)]).mean()
-    torch.testing.assert_close(loss, 0.5 * 2000.0 * by_hand)
+    torch.testing.assert_close(loss, 2000.0 * by_hand)  # unweighted term; weight 0.5 = lambda_graph
     # pseudo-pairs equal to the model's own prediction (its last-level tau) cost less than a random map
     sx = torch.arange(162)
     from shapecorr.matching.deep_shells import deep_shells_layer
@@ -144,8 +164,8 @@ def test_graph_loss_hand_computation_and_prediction_beats_random(shapes):
         out = deep_shells_layer(model.features(x, sx), model.features(y, sx), model.spectral_shape(x),
                                 model.spectral_shape(y), sx, sx, model.config, return_plans=False)
     rand = torch.randint(0, 162, (162,), generator=torch.Generator().manual_seed(0))
-    own = model.graph_loss(x, y, out.tau, q.map_x_to_y, q.map_y_to_x)
-    other = model.graph_loss(x, y, out.tau, rand, rand)
+    own = model.graph_alignment(x, y, out.tau, q.map_x_to_y, q.map_y_to_x)
+    other = model.graph_alignment(x, y, out.tau, rand, rand)
     assert own < 0.5 * other
     # queries are seeded per pair: the same pair gives the same cost and maps
     q2 = model.graph_query(x, y)
@@ -292,5 +312,6 @@ def test_configs_pairwise_and_gmsm_compose(compose_config):
     assert isinstance(model, GMSM) and model.graph_options.builds_at(0)
     published = compose_config("train", ["experiment=gmsm_faust_r", "data.root=/nonexistent"])
     assert published.model.graph.burn_in == 100 and published.model.graph.update_every == 20
-    assert published.model.lambda_graph == 0.5 and published.model.num_samples == 2000
+    assert published.model.loss.terms.graph.weight == 0.5 and published.model.num_samples == 2000
+    assert published.model.layer == compose_config("evaluate", ["model=deep_shells"]).model.layer  # inherited
     assert compose_config("evaluate", ["model=gmsm", "matching=pairwise"]).matching == "pairwise"

@@ -7,7 +7,6 @@ layers) except in the CLI run, which uses the configured model on a 4-shape fold
 
 from __future__ import annotations
 
-import functools
 import os
 import re
 import subprocess
@@ -36,16 +35,27 @@ from shapecorr.errors import ConfigError
 from shapecorr.losses.weighted import WeightedLoss
 from shapecorr.models.neuromorph import NeuroMorph
 from shapecorr.models.schedules import EpochSchedule, LossWeightSchedule
+from shapecorr.nn.spectral_conv import SpectralBackbone
 from shapecorr.nn.edgeconv_backbone import EdgeConvBackbone
 from shapecorr.viz.interpolation import interpolation_strip_figure, log_interpolation
 
 REPO = Path(__file__).resolve().parents[2]
 SMALL_NET = dict(hidden_channels=16, n_blocks=2)
+#: The published loss weights (configs/model/loss/neuromorph.yaml).
+PUBLISHED_WEIGHTS = {"registration": 1.0, "arap": 1.0, "geo": 50.0}
+
+
+def published_loss():
+    """The published loss, built from configs/model/loss/neuromorph.yaml."""
+    from omegaconf import OmegaConf
+
+    return instantiate(OmegaConf.load(REPO / "configs" / "model" / "loss" / "neuromorph.yaml"), _convert_="object")
 
 
 def small() -> dict:
-    """Options of a shrunk model: a fresh 16-channel, 2-layer backbone and interpolator."""
-    return dict(backbone=EdgeConvBackbone(feature_dim=16, **SMALL_NET), interpolator=SMALL_NET)
+    """Options of a shrunk model: a fresh 16-channel, 2-layer backbone and interpolation network, the loss."""
+    return dict(backbone=EdgeConvBackbone(feature_dim=16, **SMALL_NET), interpolation_net=SMALL_NET,
+                loss=published_loss())
 
 FINAL_LINE = re.compile(r"^test geodesic error: (\d+\.\d+) \(fraction of sqrt\(area\)\) over (\d+) pairs$")
 
@@ -152,8 +162,8 @@ def test_map_gradient_geodesic_lets_only_the_geodesic_term_train_the_features(pa
     for a, b in zip(reference.feature_net.parameters(), model.feature_net.parameters()):
         torch.testing.assert_close(a.grad, b.grad)
     for term in ("registration", "arap", "geo"):
-        reference.loss.set_weight(term, nm.DEFAULT_LOSS_WEIGHTS[term])
-        model.loss.set_weight(term, nm.DEFAULT_LOSS_WEIGHTS[term])
+        reference.loss.set_weight(term, PUBLISHED_WEIGHTS[term])
+        model.loss.set_weight(term, PUBLISHED_WEIGHTS[term])
     with torch.no_grad():
         assert float(model.training_step(pair, 0)) == pytest.approx(float(reference.training_step(pair, 0)), rel=1e-5)
     # a schedule can switch it, and a bad value is refused
@@ -255,27 +265,28 @@ def test_interpolation_metrics_use_the_frame_at_t1(pair, tmp_path, monkeypatch):
 
 
 def test_options_are_validated(tmp_path):
-    # Deep Shells keys that old checkpoints carry: dropped with a warning, and not saved again
-    with pytest.warns(UserWarning, match="ignoring Deep Shells option"):
-        legacy = NeuroMorph(**small(), num_samples=3, layer={"k": 1}, val_refine_levels=2, num_eigs=4)
-    assert not nm.LEGACY_CHECKPOINT_OPTIONS & set(legacy.hparams)
-    for bad in (dict(typo_option=1), dict(sigma=-1.0), dict(query_resolution=2),
+    with pytest.raises(TypeError):  # an unknown option (e.g. a Deep Shells key)
+        NeuroMorph(**small(), num_samples=3)
+    for bad in (dict(sigma=-1.0), dict(query_resolution=2),
                 dict(arap_edge_weight_scale=0.0), dict(augment=dict(axis="q")), dict(interp_times=[]),
                 dict(interp_times=[1.0, 0.5]),
                 dict(loss={"not": "a loss"}), dict(n_intermediate=-1), dict(n_intermediate=1.5)):
         with pytest.raises(ConfigError):
-            NeuroMorph(**small(), **bad)
+            NeuroMorph(**{**small(), **bad})
     model = NeuroMorph(**small())
     model.n_intermediate = 7
     assert model.n_intermediate == 7
     with pytest.raises(ConfigError):
         model.n_intermediate = -2
-    assert "loss" not in model.hparams and model.hparams["interpolator"]["pool"] == "global"
-    assert model.hparams["backbone"]["pool"] == "global" and model.hparams["backbone"]["feature_dim"] == 16
+    assert model.interpolator.net.pool == "global" and model.backbone.out_channels == 16
     with pytest.raises(ConfigError, match="backbone"):
         NeuroMorph(backbone=torch.nn.Linear(3, 3))
-    with pytest.raises(ConfigError, match="interpolator"):
-        NeuroMorph(interpolator=dict(width=3))
+    with pytest.raises(ConfigError, match="per-shape operators"):  # augmented shapes carry none
+        NeuroMorph(backbone=SpectralBackbone())
+    with pytest.raises(ConfigError, match="interpolation_net"):
+        NeuroMorph(interpolation_net=dict(width=3))
+    with pytest.raises(ConfigError, match="model.loss"):
+        NeuroMorph(**{**small(), "loss": None}).training_step(None, 0)
 
 
 def test_schedule_callbacks_drive_the_module(tmp_path):
@@ -289,7 +300,7 @@ def test_configs_compose_with_the_published_settings(tmp_path, compose_config):
     cfg = compose_config("train", ["model=neuromorph", "debug=tiny", f"paths.cache_dir={tmp_path}",
                                    f"paths.output_dir={tmp_path}"])
     # the run configs' Deep Shells settings (configs/quick/) do not reach another model
-    assert not nm.LEGACY_CHECKPOINT_OPTIONS & set(cfg.model)
+    assert not {"num_samples", "val_refine_levels", "layer"} & set(cfg.model)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         model = instantiate(cfg.model, _convert_="object")
@@ -386,63 +397,19 @@ def test_train_cli_tiny_smoke_run(tmp_path):
     assert "val/interpolation/strip" in events.Tags()["images"]
     assert "neuromorph: mapping old option" not in proc.stderr
     state = torch.load(last, map_location="cpu", weights_only=False)
-    assert state["global_step"] == 2 and state["hyper_parameters"]["augment"]["variants"] == 2
-    # the evaluation path: load_from_checkpoint (default loss) and query a pair
-    model = NeuroMorph.load_from_checkpoint(str(last), map_location="cpu").eval()
-    assert model.loss.weights["geo"] == 50.0
+    assert state["global_step"] == 2 and state["model_recipe"]["augment"]["variants"] == 2
+    # the evaluation path: the checkpoint's recipe (with its loss) and weights
+    from shapecorr.models.recipe import load_model
+
+    model = load_model(last).eval()
+    assert isinstance(model, NeuroMorph) and model.loss.weights["geo"] == 50.0
     v, f = _base_mesh()
     x = _sample(v, f, "a", np.arange(len(v)))
     assert model.match(x, x).p2p.shape == (len(v),)
     assert len(list((tmp_path / "cache" / "remesh").rglob("*.npz"))) <= 4  # 2 train shapes x 2 variants
 
 
-# -- config nodes (issue 12): backbone, interpolator, optimizer, frame times; old checkpoints ----------------
-def test_old_checkpoint_options_are_mapped_with_a_warning(pair, tmp_path):
-    old = dict(feature_dim=16, hidden_channels=16, n_blocks=2, pool="channel", lr=3e-4, eval_times=[0.0, 1.0])
-    torch.manual_seed(0)
-    with pytest.warns(UserWarning, match="mapping old option"):
-        legacy = NeuroMorph(**old)
-    torch.manual_seed(0)
-    new = NeuroMorph(backbone=EdgeConvBackbone(16, 16, 2, "channel"),
-                     interpolator=dict(hidden_channels=16, n_blocks=2, pool="channel"),
-                     optimizer=functools.partial(torch.optim.Adam, lr=3e-4), interp_times=[0.0, 1.0])
-    # same networks, same initialization, same parameter names as before backbones were injected
-    assert legacy.state_dict().keys() == new.state_dict().keys()
-    assert all(k.startswith(("feature_net.net.", "interpolator.net.")) for k in new.state_dict())
-    for key, value in legacy.state_dict().items():
-        assert torch.equal(value, new.state_dict()[key]), key
-    assert legacy.interpolator.net.pool == "channel" and legacy.backbone.net.pool == "channel"
-    assert legacy.configure_optimizers().defaults["lr"] == 3e-4 and legacy.interp_times == (0.0, 1.0)
-    # the new hyperparameters rebuild the model without legacy keys (what load_from_checkpoint does)
-    assert not LEGACY_KEYS & set(legacy.hparams)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        rebuilt = NeuroMorph(**legacy.hparams)
-    rebuilt.load_state_dict(legacy.state_dict())
-    assert rebuilt.backbone.out_channels == 16 and rebuilt.interpolator.net.pool == "channel"
-
-
-LEGACY_KEYS = {"feature_dim", "hidden_channels", "n_blocks", "pool", "lr", "eval_times"}
-
-
-def test_an_old_checkpoint_file_loads(pair, tmp_path):
-    """A checkpoint whose hyperparameters have the flattened network keys and lr (as written before issue 12)."""
-    torch.manual_seed(0)
-    model = NeuroMorph(**small())
-    path = tmp_path / "old.ckpt"
-    hparams = {k: v for k, v in model.hparams.items() if k not in ("backbone", "interpolator", "interp_times")}
-    hparams.update(feature_dim=16, hidden_channels=16, n_blocks=2, pool="global", lr=1e-4,
-                   eval_times=[0.0, 0.5, 1.0])
-    torch.save({"state_dict": model.state_dict(), "hyper_parameters": hparams,
-                "pytorch-lightning_version": "2.0.0"}, path)
-    with pytest.warns(UserWarning, match="mapping old option"):
-        loaded = NeuroMorph.load_from_checkpoint(str(path), map_location="cpu").eval()
-    assert loaded.interp_times == (0.0, 0.5, 1.0)
-    model.eval()
-    a, b = model.match(pair.x, pair.y), loaded.interpolate(pair.x, pair.y, torch.tensor(nm.DEFAULT_INTERP_TIMES))
-    assert torch.equal(a.p2p, b.p2p) and torch.equal(a.deformation, b.deformation)
-
-
+# -- config nodes: backbone, loss, optimizer ------------------------------------------------------------------
 def test_backbone_and_optimizer_nodes_are_selectable(tmp_path, compose_config):
     base = ["model=neuromorph", "debug=tiny", f"paths.cache_dir={tmp_path}", f"paths.output_dir={tmp_path}"]
     cfg = compose_config("train", [*base, "model/backbone=edgeconv", "model.backbone.feature_dim=24",
@@ -453,44 +420,8 @@ def test_backbone_and_optimizer_nodes_are_selectable(tmp_path, compose_config):
     conf = model.configure_optimizers()
     assert conf["optimizer"].defaults["lr"] == 2e-4
     assert isinstance(conf["lr_scheduler"]["scheduler"], torch.optim.lr_scheduler.StepLR)
-    # the old key of the frame times still works, with a warning
-    old = compose_config("train", [*base, "+model.eval_times=[0.0,1.0]"])
-    with pytest.warns(UserWarning, match="eval_times"):
-        assert instantiate(old.model, _convert_="object").interp_times == (0.0, 1.0)
-    # the old network / lr keys next to the new nodes would be ignored: an error naming the new keys
-    for override, message in (("+model.feature_dim=64", "model.backbone.feature_dim"),
-                              ("+model.lr=1e-3", "model.optimizer.lr")):
-        with pytest.warns(UserWarning), pytest.raises(ConfigError, match=message):
-            NeuroMorph(**instantiate(compose_config("train", [*base, override]).model, _convert_="object",
-                                     _target_="builtins.dict"))
-
-
-def test_default_loss_agrees_with_the_loss_config(pair, compose_config):
-    """default_loss() (what load_from_checkpoint gets) computes what configs/loss/neuromorph.yaml computes."""
-    cfg = compose_config("train", ["model=neuromorph"])
-    configured = instantiate(cfg.model.loss, _convert_="object")
-    default = nm.default_loss()
-    assert configured.weights == default.weights == nm.DEFAULT_LOSS_WEIGHTS
-    torch.manual_seed(0)
-    model = NeuroMorph(**small())
-    x, y = pair.x, pair.y
-    times = torch.tensor([0.5, 1.0])
-    out = model.forward_pair(x, y, times)
-    n = x.shape.n_verts
-    dist = torch.cdist(x.verts, x.verts)
-    inputs = dict(verts_x_deformed=out["frames"][-1], verts_y=y.verts, pi_x_to_y=out["pi_x_to_y"],
-                  pi_y_to_x=out["pi_y_to_x"], soft_target=out["soft_target"],
-                  frames=torch.cat((x.verts[None], out["frames"])), edges=out["edges"],
-                  edge_weights=out["edge_counts"].float(), dist_x=dist, dist_y=dist[:n, :n])
-    total_c, values_c = configured(**inputs)
-    total_d, values_d = default(**inputs)
-    assert set(values_c) == set(values_d) == {"registration", "arap", "geo"}
-    for term in values_c:
-        torch.testing.assert_close(values_c[term], values_d[term])
-    torch.testing.assert_close(total_c, total_d)
-    # and a different setting would be seen
-    configured.set_weight("arap", 2.0)
-    assert not torch.allclose(configured(**inputs)[0], total_d)
+    assert model.loss.weights == {"registration": 1.0, "arap": 1.0, "geo": 50.0}  # the model node's loss
+    assert "interpolation_net" in cfg.model and "interpolator" not in cfg.model  # no clash with interpolator=
 
 
 # -- augmentation on the data side ------------------------------------------------------------------------
