@@ -72,31 +72,11 @@ ORIGINAL_REFERENCE = {
 TARGET_RATIO = {"deep_shells_train": 10.0, "deep_shells_query": 6.0, "gmsm_train": 8.0, "gmsm_query": 8.0,
                 "hamiltonian_published": 5.0, "hamiltonian_small": 5.0}
 MIB = 2 ** 20
-#: Linux /proc/<pid>/clear_refs value that resets the peak resident set size (VmHWM).
-CLEAR_PEAK_RSS = "5"
 
 
 # ----------------------------------------------------------------------------------------------------------
 # Child process: inputs, one case, measurements
 # ----------------------------------------------------------------------------------------------------------
-def _status_kb(field: str) -> int | None:
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith(field + ":"):
-                return int(line.split()[1])
-    except OSError:
-        pass
-    return None
-
-
-def _reset_peak_rss() -> bool:
-    try:
-        Path("/proc/self/clear_refs").write_text(CLEAR_PEAK_RSS)
-    except OSError:
-        return False
-    return _status_kb("VmHWM") is not None
-
-
 def _golden_pair(golden: Path, device, diffusion: bool = False):
     """PairSample of the golden pair: eigenbasis (shapecorr's eigenvalue convention), SHOT, optionally DiffusionNet's
     gradient operators."""
@@ -127,21 +107,26 @@ def _golden_pair(golden: Path, device, diffusion: bool = False):
     return PairSample(*samples).to(device)
 
 
+def _learned_unit(model, pair, train: bool, optimizer=None):
+    """A training step (``training_step`` + backward, + the optimizer's step if given) or a query of ``pair``."""
+    if not train:
+        return lambda: int(model.match(pair.x, pair.y).p2p.numel())
+
+    def step():
+        model.zero_grad(set_to_none=True)
+        loss = model.training_step(pair, 0)
+        loss.backward()
+        if optimizer is not None:
+            optimizer.step()
+        return float(loss.detach())
+    return step
+
+
 def _deep_shells(golden: Path, device, train: bool):
     from shapecorr.models.deep_shells import DeepShells
 
     model = DeepShells(num_samples=TRAIN_SAMPLES, pretrained=golden / WEIGHTS).to(device).train(train)
-    pair = _golden_pair(golden, device)
-    if train:
-        def op():
-            model.zero_grad(set_to_none=True)
-            loss = model.training_step(pair, 0)
-            loss.backward()
-            return float(loss.detach())
-    else:
-        def op():
-            return int(model.match(pair.x, pair.y).p2p.numel())
-    return op
+    return _learned_unit(model, _golden_pair(golden, device), train)
 
 
 def _gmsm(golden: Path, device, train: bool):
@@ -152,20 +137,8 @@ def _gmsm(golden: Path, device, train: bool):
 
     torch.manual_seed(0)
     model = GMSM(backbone=DiffusionNetBackbone(), num_samples=TRAIN_SAMPLES).to(device).train(train)
-    pair = _golden_pair(golden, device, diffusion=True)
-    if train:
-        optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
-
-        def op():
-            optimizer.zero_grad(set_to_none=True)
-            loss = model.training_step(pair, 0)
-            loss.backward()
-            optimizer.step()
-            return float(loss.detach())
-    else:
-        def op():
-            return int(model.match(pair.x, pair.y).p2p.numel())
-    return op
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-4) if train else None
+    return _learned_unit(model, _golden_pair(golden, device, diffusion=True), train, optimizer)
 
 
 def _hamiltonian(golden: Path, device, setting: dict):
@@ -225,12 +198,7 @@ def run_child(case: str, golden: Path, device_name: str, threads: int, repeats: 
     device = torch.device(device_name)
     cuda = device.type == "cuda"
     op = build_case(case, golden, device)
-    if cuda:
-        torch.cuda.synchronize(device)
-        torch.cuda.reset_peak_memory_stats(device)
-        cuda_base = torch.cuda.memory_allocated(device)
-    baseline_kb = _status_kb("VmRSS")
-    reset = _reset_peak_rss()
+    cuda_base, baseline_kb, reset = bench_common.start_memory_span(device)
     walls, cpus, value = [], [], None
     for i in range(repeats + 1):  # the first call warms up (allocator, lazy initialization, kernels)
         wall, cpu = time.perf_counter(), time.process_time()
@@ -240,7 +208,7 @@ def run_child(case: str, golden: Path, device_name: str, threads: int, repeats: 
         if i > 0:
             walls.append(time.perf_counter() - wall)
             cpus.append(time.process_time() - cpu)
-    hwm = _status_kb("VmHWM") if reset else None
+    hwm = bench_common.status_kb("VmHWM") if reset else None
     if hwm is None:
         import resource
 
