@@ -83,6 +83,46 @@ def timed(fn, repeats: int, warmup=None):
     return walls, cpus, result
 
 
+#: Linux /proc/<pid>/clear_refs value that resets the peak resident set size (VmHWM), Documentation/filesystems/proc.
+CLEAR_PEAK_RSS = "5"
+
+
+def status_kb(field: str) -> int | None:
+    """A ``kB`` field of /proc/self/status (VmRSS, VmHWM), or None off Linux."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(field + ":"):
+                return int(line.split()[1])
+    except OSError:
+        pass
+    return None
+
+
+def reset_peak_rss() -> bool:
+    """Reset this process's peak resident set (``VmHWM``) to its current size; False where that is unsupported."""
+    try:
+        Path("/proc/self/clear_refs").write_text(CLEAR_PEAK_RSS)
+    except OSError:
+        return False
+    return status_kb("VmHWM") is not None
+
+
+def start_memory_span(device) -> tuple[int | None, int | None, bool]:
+    """Start measuring peak memory: CUDA statistics reset (on a CUDA ``device``), the peak resident set reset.
+
+    Returns ``cuda_base`` (bytes allocated now on CUDA, else None), ``baseline_kb`` (resident set now) and whether
+    the peak resident set could be reset (then ``status_kb("VmHWM")`` later is the peak of the span).
+    """
+    cuda_base = None
+    if device.type == "cuda":
+        import torch
+
+        torch.cuda.synchronize(device)
+        torch.cuda.reset_peak_memory_stats(device)
+        cuda_base = torch.cuda.memory_allocated(device)
+    return cuda_base, status_kb("VmRSS"), reset_peak_rss()
+
+
 def median(values) -> float:
     return float(statistics.median(values))
 

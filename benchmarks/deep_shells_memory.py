@@ -48,33 +48,12 @@ CASES = ("train_step", "query")
 TRAIN_SAMPLES = 2000
 #: Bytes per MiB (all memory numbers are MiB).
 MIB = 2 ** 20
-#: Linux /proc/<pid>/clear_refs value that resets the peak resident set size (VmHWM), Documentation/filesystems/proc.
-CLEAR_PEAK_RSS = "5"
-
-
-def _status_kb(field: str) -> int | None:
-    """A ``kB`` field of /proc/self/status (VmRSS, VmHWM), or None off Linux."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith(field + ":"):
-                return int(line.split()[1])
-    except OSError:
-        pass
-    return None
 
 
 def _maxrss_mb(usage: resource.struct_rusage) -> float:
     # ru_maxrss is in kB on Linux, bytes on macOS
     scale = 1 if sys.platform == "darwin" else 1024
     return usage.ru_maxrss * scale / MIB
-
-
-def _reset_peak_rss() -> bool:
-    try:
-        Path("/proc/self/clear_refs").write_text(CLEAR_PEAK_RSS)
-    except OSError:
-        return False
-    return _status_kb("VmHWM") is not None
 
 
 def load_samples(golden: Path, device):
@@ -115,12 +94,7 @@ def run_case(case: str, golden: Path, device_name: str, threads: int) -> dict:
     pair = load_samples(golden, device)
     model.train(case == "train_step")
     cuda = device.type == "cuda"
-    if cuda:
-        torch.cuda.synchronize(device)
-        torch.cuda.reset_peak_memory_stats(device)
-        cuda_base = torch.cuda.memory_allocated(device)
-    baseline_kb = _status_kb("VmRSS")
-    reset = _reset_peak_rss()
+    cuda_base, baseline_kb, reset = bench_common.start_memory_span(device)
     wall, cpu = time.perf_counter(), time.process_time()
     if case == "train_step":
         loss = model.training_step(pair, 0)
@@ -133,7 +107,7 @@ def run_case(case: str, golden: Path, device_name: str, threads: int) -> dict:
         torch.cuda.synchronize(device)
     out = {"case": case, "seconds": time.perf_counter() - wall, "cpu_seconds": time.process_time() - cpu, **info,
            "n_verts": [pair.x.shape.n_verts, pair.y.shape.n_verts]}
-    hwm = _status_kb("VmHWM") if reset else None
+    hwm = bench_common.status_kb("VmHWM") if reset else None
     op_peak = hwm / 1024 if hwm is not None else _maxrss_mb(resource.getrusage(resource.RUSAGE_SELF))
     out["op_peak_source"] = "VmHWM after clear_refs" if hwm is not None else "ru_maxrss (process maximum)"
     if baseline_kb is not None:

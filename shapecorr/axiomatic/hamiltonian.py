@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -183,6 +184,28 @@ class _Graph:
     edges: torch.Tensor  # (E, 2) int64
     weights: torch.Tensor  # (E,) float
     rest: torch.Tensor  # (E, 3) x_0[b] - x_0[a]
+    #: Sparsity pattern of the block matrix of :func:`_dynamics_operator`, per sample count (built once).
+    patterns: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def block_pattern(self, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """CSR layout of a ``(3n, 3n)`` matrix of 3x3 blocks on the diagonal and at ``(a, b)``, ``(b, a)``.
+
+        Returns ``crow (3n + 1,)``, ``col (9 m,)`` and ``perm (9 m,)``: the CSR values are
+        ``blocks.reshape(-1)[perm]`` for the ``m = n + 2E`` blocks in the order diagonal, ``(a, b)``, ``(b, a)``.
+        """
+        if n not in self.patterns:
+            device = self.edges.device
+            idx = torch.arange(n, device=device)
+            a, b = self.edges[:, 0], self.edges[:, 1]
+            block_row, block_col = torch.cat([idx, a, b]), torch.cat([idx, b, a])
+            three = torch.arange(3, device=device)
+            row = (3 * block_row[:, None, None] + three[None, :, None]).expand(-1, 3, 3).reshape(-1)
+            col = (3 * block_col[:, None, None] + three[None, None, :]).expand(-1, 3, 3).reshape(-1)
+            perm = torch.argsort(row * (3 * n) + col)
+            crow = torch.zeros(3 * n + 1, dtype=torch.int64, device=device)
+            crow[1:] = torch.bincount(row, minlength=3 * n).cumsum(0)
+            self.patterns[n] = (crow, col[perm], perm)
+        return self.patterns[n]
 
 
 def _laplacian_apply(q: torch.Tensor, graph: _Graph) -> torch.Tensor:
@@ -216,21 +239,120 @@ def _force(x: torch.Tensor, x_pred: torch.Tensor, x0: torch.Tensor, graph: _Grap
     return force, rest_rotated, frames
 
 
+def _dynamics_operator(frames: torch.Tensor, lam: torch.Tensor, h: float, graph: _Graph) -> torch.Tensor:
+    """``G = lambda' I + h^2 B^T (H x I_3) B`` as a sparse ``(3n, 3n)`` CSR matrix (``B = diag(R'_i^T)``).
+
+    Its 3x3 blocks: ``lambda' I + h^2 d_i R'_i R'_i^T`` on the diagonal (``d_i`` the weighted degree) and
+    ``-h^2 c_e R'_a R'_b^T`` at ``(a, b)`` (transposed at ``(b, a)``), so that ``Psi^T G Psi`` is the matrix of
+    step 3 and ``(G v)_i = lambda' v_i + h^2 R'_i (H (R'^T v))_i`` for ``v (n, 3)``.
+    """
+    n = frames.shape[0]
+    a, b = graph.edges[:, 0], graph.edges[:, 1]
+    weights = graph.weights.to(frames)
+    degree = torch.zeros(n, dtype=frames.dtype, device=frames.device).index_add(0, a, weights).index_add(0, b, weights)
+    h2 = h * h
+    eye = torch.eye(3, dtype=frames.dtype, device=frames.device)
+    diag = lam * eye + (h2 * degree)[:, None, None] * (frames @ frames.transpose(1, 2))
+    off = (-h2 * weights)[:, None, None] * (frames[a] @ frames[b].transpose(1, 2))
+    crow, col, perm = graph.block_pattern(n)
+    values = torch.cat([diag, off, off.transpose(1, 2)]).reshape(-1)[perm]
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+        return torch.sparse_csr_tensor(crow, col, values, (3 * n, 3 * n), check_invariants=False)
+
+
+def _symmetric_product(left: torch.Tensor, right: torch.Tensor, blocks: int = 3) -> torch.Tensor:
+    """``left^T right (F, F)`` for ``(m, F)`` matrices whose product is symmetric.
+
+    Only the blocks on and above the diagonal are multiplied (``(blocks + 1) / (2 blocks)`` of the full
+    product's work); the others are their transposes, so the result is exactly symmetric.
+    """
+    f = left.shape[1]
+    bounds = [f * i // blocks for i in range(blocks + 1)]
+    out = left.new_empty(f, f)
+    for i in range(blocks):
+        rows = slice(bounds[i], bounds[i + 1])
+        for j in range(i, blocks):
+            cols = slice(bounds[j], bounds[j + 1])
+            out[rows, cols] = left[:, rows].T @ right[:, cols]
+            if j > i:
+                out[cols, rows] = out[rows, cols].T
+    return out
+
+
+class _StepSolve(torch.autograd.Function):
+    """Step 3-4 of the module docstring with a hand-written backward.
+
+    Forward: ``Psi (n, F, 3)`` at ``mid``, ``W = G Psi`` with ``G = lambda' I + h^2 B^T H B`` (``B`` the block
+    diagonal of ``R'_i^T``, so that ``Q = B Psi``), the system ``S = Psi^T W + ridge I`` (one matrix product;
+    symmetric positive definite: Cholesky in float64), ``xi = S^-1 Psi^T b`` and ``v = Psi xi``.
+
+    Backward: the gradient of ``xi = S^-1 r`` with respect to S is the outer product ``-u xi^T`` (``u = S^-1 g``),
+    so every gradient of the F x F system reduces to products of ``Psi`` with the two vectors ``u`` and ``xi``:
+    the cotangent of ``Psi_i`` is ``alpha_i u^T + beta_i xi^T`` (``alpha, beta (n, 3)``), pulled back to ``mid``
+    through :func:`shapecorr.geometry.divergence_free.velocity`. Nothing of size ``n x F`` is kept between
+    forward and backward (only the Cholesky factor), and the backward costs no ``n F^2`` product.
+    """
+
+    @staticmethod
+    def forward(ctx, mid, frames, lam, rhs, graph, h, cfg):
+        psi = df.basis_fields(mid, cfg.n_modes, cfg.convention)  # (n, F, 3)
+        n, f = psi.shape[0], psi.shape[1]
+        psi = psi.transpose(1, 2).reshape(3 * n, f)  # rows (i, d)
+        operator = _dynamics_operator(frames, lam, h, graph)
+        system = _symmetric_product(psi, operator @ psi).double()
+        system.diagonal().add_(cfg.ridge)
+        factor, info = torch.linalg.cholesky_ex(system)
+        if int(info) != 0:
+            raise NumericalError("hamiltonian: the per-step system is not positive definite; lower lr or check "
+                                 "the inputs")
+        r = psi.T @ rhs.reshape(3 * n)
+        xi = torch.cholesky_solve(r.double().unsqueeze(-1), factor).squeeze(-1).to(mid.dtype)
+        if not bool(torch.isfinite(xi).all()):
+            raise NumericalError("hamiltonian: the per-step linear solve gave NaN/Inf; lower lr or check the inputs")
+        v = (psi @ xi).reshape(n, 3)
+        ctx.save_for_backward(mid, frames, lam, rhs, xi, v, factor)
+        ctx.graph, ctx.h, ctx.cfg, ctx.operator = graph, h, cfg, operator
+        return xi, v
+
+    @staticmethod
+    def backward(ctx, grad_xi, grad_v):
+        mid, frames, lam, rhs, xi, v, factor = ctx.saved_tensors
+        graph, h, cfg, operator = ctx.graph, ctx.h, ctx.cfg, ctx.operator
+        n = mid.shape[0]
+        with torch.enable_grad():
+            m = mid.detach().requires_grad_(True)
+            probe = torch.zeros_like(xi, requires_grad=True)
+            # Psi^T grad_v: the field is linear in its coefficients.
+            g = grad_xi if grad_xi is not None else torch.zeros_like(xi)
+            if grad_v is not None:
+                (psi_t_grad,) = torch.autograd.grad((grad_v * df.velocity(m.detach(), probe, cfg.convention)).sum(),
+                                                    probe)
+                g = g + psi_t_grad
+            else:
+                grad_v = torch.zeros_like(v)
+            u = torch.cholesky_solve(g.double().unsqueeze(-1), factor).squeeze(-1).to(xi.dtype)
+            p_u = df.velocity(m, u, cfg.convention)  # Psi u
+            p_xi = df.velocity(m, xi, cfg.convention)  # Psi xi (= v)
+            p_u_d = p_u.detach()
+            # cotangent of Psi_i: alpha_i u^T + beta_i xi^T with alpha = rhs - G Psi xi, beta = grad_v - G Psi u
+            alpha = rhs - (operator @ v.reshape(3 * n, 1)).reshape(n, 3)
+            beta = grad_v - (operator @ p_u_d.reshape(3 * n, 1)).reshape(n, 3)
+            grad_mid = None
+            if ctx.needs_input_grad[0]:
+                (grad_mid,) = torch.autograd.grad((alpha * p_u).sum() + (beta * p_xi).sum(), m)
+        lap_a = _laplacian_apply((frames.transpose(1, 2) @ v.unsqueeze(-1)).squeeze(-1), graph)
+        lap_c = _laplacian_apply((frames.transpose(1, 2) @ p_u_d.unsqueeze(-1)).squeeze(-1), graph)
+        h2 = h * h
+        grad_frames = -h2 * (p_u_d.unsqueeze(-1) * lap_a.unsqueeze(-2) + v.unsqueeze(-1) * lap_c.unsqueeze(-2))
+        grad_lam = -(p_u_d * v).sum()
+        return grad_mid, grad_frames, grad_lam, p_u_d, None, None, None
+
+
 def _solve_step(mid: torch.Tensor, v_pred: torch.Tensor, force: torch.Tensor, frames: torch.Tensor, graph: _Graph,
                 lam: torch.Tensor, h: float, cfg: HamiltonianConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """Coefficients ``xi`` of the new velocity and the velocity at the samples (module docstring, step 3-4)."""
-    psi = df.basis_fields(mid, cfg.n_modes, cfg.convention)  # (n, F, 3)
-    n, f = psi.shape[0], psi.shape[1]
-    psi_flat = psi.transpose(1, 2).reshape(3 * n, f)  # rows (i, d)
-    q = frames.transpose(1, 2) @ psi.transpose(1, 2)  # (n, 3, F): R'_i^T Psi_i
-    hq = _laplacian_apply(q, graph)
-    system = lam * (psi_flat.T @ psi_flat) + (h * h) * (q.reshape(3 * n, f).T @ hq.reshape(3 * n, f))
-    rhs = psi_flat.T @ (lam * v_pred + 0.5 * h * force).reshape(3 * n)
-    system64 = system.double() + cfg.ridge * torch.eye(f, dtype=torch.float64, device=mid.device)
-    xi = torch.linalg.solve(system64, rhs.double()).to(mid.dtype)
-    if not bool(torch.isfinite(xi.detach()).all()):
-        raise NumericalError("hamiltonian: the per-step linear solve gave NaN/Inf; lower lr or check the inputs")
-    return xi, psi_flat.reshape(n, 3, f) @ xi
+    return _StepSolve.apply(mid, frames, lam, lam * v_pred + 0.5 * h * force, graph, h, cfg)
 
 
 def _simulate(x0: torch.Tensor, coeffs: torch.Tensor, aniso: torch.Tensor, log_lam: torch.Tensor, graph: _Graph,

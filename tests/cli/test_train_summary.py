@@ -73,6 +73,7 @@ def tiny_run(cache_dir, tmp_path_factory):
     return run_dir
 
 
+@pytest.mark.slow
 def test_run_writes_step_checkpoints_and_pairs_seen(tiny_run, runs):
     # every_n_train_steps=1 won over the default every_n_epochs=1: one checkpoint per optimizer step
     steps = sorted(p.name for p in (tiny_run / "checkpoints").glob("epoch*.ckpt"))
@@ -82,6 +83,7 @@ def test_run_writes_step_checkpoints_and_pairs_seen(tiny_run, runs):
     assert len(scalars["val/geodesic_error"]) == TRAIN_PAIRS // VAL_EVERY
 
 
+@pytest.mark.slow
 def test_summarize_tiny_run(tiny_run, bench, tmp_path, capsys):
     eval_dir = tmp_path / "eval"
     eval_dir.mkdir()
@@ -144,6 +146,7 @@ def test_launch_commands_compose_without_plus_overrides(bench, tmp_path, compose
     assert "model=deep_shells_ablation" in cmds["ablation"] and "data=faust_r" in cmds["ablation"]
 
 
+@pytest.mark.slow
 def test_neuromorph_summary_and_launch_commands(tiny_run, nm_bench, tmp_path, capsys, compose_config):
     interp = tmp_path / "interp.json"
     mean = {"cd_mid_neuromorph": 0.25, "cd_mid_blend_soft": 1.5, "cd_mid_blend_hard": 3.0, "chamfer_end": 0.02,

@@ -347,6 +347,7 @@ _CRASHING_WRITER = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_hard_crash_between_write_and_rename(tmp_path, mesh):
     cache, compute, path = _populate(tmp_path, mesh)
     before = path.read_bytes()

@@ -200,6 +200,7 @@ def test_size_mismatch_is_a_clear_error(tiny, tmp_path, capsys):
     assert "600 entries" in err and "642 vertices" in err
 
 
+@pytest.mark.slow
 def test_entry_point_composes_the_configs(tiny, tmp_path):
     """The root ``evaluate.py`` finds configs/evaluate.yaml and its groups (no run: ``--cfg job``)."""
     root = tiny[0]

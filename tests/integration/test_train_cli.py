@@ -35,6 +35,7 @@ def _run(args: list[str], timeout: float = 300) -> subprocess.CompletedProcess:
                           timeout=timeout, env=env)
 
 
+@pytest.mark.slow
 def test_train_cli_tiny(cache_dir, tmp_path):
     run_dir = tmp_path / "run"
     proc = _run(["debug=tiny", f"paths.cache_dir={cache_dir}", f"hydra.run.dir={run_dir}",
@@ -53,6 +54,7 @@ def test_train_cli_tiny(cache_dir, tmp_path):
     assert state["model_recipe"]["num_samples"] == 100  # debug=tiny reached the model (its recipe)
 
 
+@pytest.mark.slow
 def test_train_cli_missing_checkpoint_is_a_clean_error(tmp_path):
     proc = _run([f"paths.cache_dir={tmp_path}", f"hydra.run.dir={tmp_path / 'run'}",
                  f"ckpt_path={tmp_path / 'nope.ckpt'}"], timeout=120)

@@ -1,0 +1,325 @@
+"""Benchmark: seconds and peak memory of every method's unit of work on one fixed pair, CPU (1 and 2 threads) and CUDA.
+
+    python benchmarks/speed.py [--golden DIR] [--cases all|NAME ...] [--devices cpu1 cpu2 cuda] [--repeats 3]
+    python benchmarks/speed.py --devices cuda --repeats 3          # the CUDA column alone (skipped without CUDA)
+
+Inputs: the golden FAUST_r pair ``tr_reg_080 -> tr_reg_081`` (``--golden`` or ``$SHAPECORR_DEEP_SHELLS_GOLDEN``,
+default ``/work/shared/data/reference/deep_shells_golden``): meshes (5000 / 5001 vertices), 510 eigenpairs and SHOT
+of the original Deep Shells, and the original's map ``x -> y`` (the Hamiltonian targets ``y[map]``). Nothing is
+read from ``$SHAPECORR_FAUST_R`` and no shape cache is filled, so the numbers do not depend on this project's
+operator code; DiffusionNet's gradient operators (G-MSM) are computed once per process, outside the timing.
+
+Cases (the units of the speed table of docs/speed.md):
+
+* ``deep_shells_train``: one Deep Shells training step (published network and weights, 2000 samples per shape,
+  the published shell schedule): ``training_step`` + backward;
+* ``deep_shells_query``: one Deep Shells test query (full-resolution features, 40 refinement levels);
+* ``gmsm_train``: one G-MSM training step (DiffusionNet of the G-MSM code: width 128, 4 blocks, k_eig 128, 2000
+  samples) + backward + Adam step;
+* ``gmsm_query``: G-MSM's fast one-level query of the pair;
+* ``hamiltonian_published``: one Adam iteration of Hamiltonian interpolation at the published setting (K = 8,
+  i.e. 1536 fields, 2000 samples, 16 steps): simulation + backward;
+* ``hamiltonian_small``: the same at K = 4, 1000 samples.
+
+Every (case, device) runs in a fresh Python process: one warm-up call, then ``--repeats`` timed calls (wall and
+process-CPU seconds; the median is reported). Peak memory: the child's resident set high-water mark from the
+moment its inputs are loaded (Linux ``VmHWM`` after resetting it through ``/proc/self/clear_refs``; else the
+process maximum ``ru_maxrss``), on CUDA ``torch.cuda.max_memory_allocated`` over the same span. Results:
+``benchmarks/results/speed.json`` (``--out``), with the originals' figures measured side by side on this kind of
+CPU (``ORIGINAL_REFERENCE``, docs/speed.md) for the ratios.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import bench_common
+
+REPO = Path(__file__).resolve().parents[1]
+RESULT = REPO / "benchmarks" / "results" / "speed.json"
+DEFAULT_GOLDEN = Path("/work/shared/data/reference/deep_shells_golden")
+PAIR = "tr_reg_080__tr_reg_081"
+WEIGHTS = "published_weights_faust_scape_ep20.pth"
+#: Deep Shells / G-MSM subsample_num: vertices per shape and training step.
+TRAIN_SAMPLES = 2000
+#: Hamiltonian settings of the two cases: modes per axis K and farthest-point samples.
+HAMILTONIAN_SETTINGS = {"hamiltonian_published": {"n_modes": 8, "samples": 2000},
+                        "hamiltonian_small": {"n_modes": 4, "samples": 1000}}
+CASES = ("deep_shells_train", "deep_shells_query", "gmsm_train", "gmsm_query", "hamiltonian_published",
+         "hamiltonian_small")
+DEVICES = ("cpu1", "cpu2", "cuda")
+#: The originals' CPU seconds per unit (one thread, medians of CPU time, measured side by side with shapecorr on
+#: a 2-core Xeon; the originals run with a k-d tree in place of torch_cluster's knn). docs/speed.md.
+ORIGINAL_REFERENCE = {
+    "deep_shells_train": {"seconds": 9.36, "peak_memory_mb": None},
+    "deep_shells_query": {"seconds": 15.35, "peak_memory_mb": None},
+    "gmsm_train": {"seconds": 5.55, "peak_memory_mb": 3900.0},
+    "gmsm_query": {"seconds": 2.98, "peak_memory_mb": None},
+    "hamiltonian_published": {"seconds": 62.1, "peak_memory_mb": 3470.0},
+    "hamiltonian_small": {"seconds": 1.42, "peak_memory_mb": None},
+}
+#: Per-unit targets of the speed issue: the original's seconds divided by shapecorr's.
+TARGET_RATIO = {"deep_shells_train": 10.0, "deep_shells_query": 6.0, "gmsm_train": 8.0, "gmsm_query": 8.0,
+                "hamiltonian_published": 5.0, "hamiltonian_small": 5.0}
+MIB = 2 ** 20
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Child process: inputs, one case, measurements
+# ----------------------------------------------------------------------------------------------------------
+def _golden_pair(golden: Path, device, diffusion: bool = False):
+    """PairSample of the golden pair: eigenbasis (shapecorr's eigenvalue convention), SHOT, optionally DiffusionNet's
+    gradient operators."""
+    import numpy as np
+    import torch
+
+    from shapecorr.data.datasets import PairSample, ShapeSample
+    from shapecorr.data.shape import make_shape
+    from shapecorr.nn.spectral_conv import ORIGINAL_EIGENVALUE_FACTOR
+
+    inputs = np.load(golden / f"inputs_{PAIR}.npz")
+    samples = []
+    for side, name in zip("xy", PAIR.split("__")):
+        # the golden vertices are already normalized (area 0.44, the original convention): keep them
+        shape = make_shape(inputs[f"{side}_verts"], inputs[f"{side}_faces"], name, normalization=None)
+        operators = {
+            "eigenbasis": {"evals": torch.from_numpy(inputs[f"{side}_evals"]) / ORIGINAL_EIGENVALUE_FACTOR,
+                           "evecs": torch.from_numpy(inputs[f"{side}_evecs"]),
+                           "mass": torch.from_numpy(inputs[f"{side}_mass"])},
+            "shot": {"shot": torch.from_numpy(inputs[f"{side}_shot"])},
+        }
+        if diffusion:
+            from shapecorr.geometry.diffusion_operators import diffusion_gradients
+
+            operators["diffusion_gradients"] = diffusion_gradients(shape.verts.numpy().astype(np.float64),
+                                                                   shape.faces.numpy())
+        samples.append(ShapeSample(shape=shape, operators=operators))
+    return PairSample(*samples).to(device)
+
+
+def _learned_unit(model, pair, train: bool, optimizer=None):
+    """A training step (``training_step`` + backward, + the optimizer's step if given) or a query of ``pair``."""
+    if not train:
+        return lambda: int(model.match(pair.x, pair.y).p2p.numel())
+
+    def step():
+        model.zero_grad(set_to_none=True)
+        loss = model.training_step(pair, 0)
+        loss.backward()
+        if optimizer is not None:
+            optimizer.step()
+        return float(loss.detach())
+    return step
+
+
+def _deep_shells(golden: Path, device, train: bool):
+    from shapecorr.models.deep_shells import DeepShells
+
+    model = DeepShells(num_samples=TRAIN_SAMPLES, pretrained=golden / WEIGHTS).to(device).train(train)
+    return _learned_unit(model, _golden_pair(golden, device), train)
+
+
+def _gmsm(golden: Path, device, train: bool):
+    import torch
+
+    from shapecorr.models.gmsm import GMSM
+    from shapecorr.nn.diffusion_net import DiffusionNetBackbone
+
+    torch.manual_seed(0)
+    model = GMSM(backbone=DiffusionNetBackbone(), num_samples=TRAIN_SAMPLES).to(device).train(train)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-4) if train else None
+    return _learned_unit(model, _golden_pair(golden, device, diffusion=True), train, optimizer)
+
+
+def _hamiltonian(golden: Path, device, setting: dict):
+    """One Adam iteration (simulation on the samples + backward) of :func:`hamiltonian_interpolation`'s loop."""
+    import numpy as np
+    import torch
+
+    from shapecorr.axiomatic import hamiltonian as ham
+    from shapecorr.axiomatic.divfree import knn_graph_edges
+    from shapecorr.geometry import divergence_free as df
+    from shapecorr.geometry.sampling import farthest_point_sampling
+    from shapecorr.losses.arap import edge_vectors
+
+    inputs = np.load(golden / f"inputs_{PAIR}.npz")
+    mapping = np.load(golden / f"original_output_{PAIR}.npz")["map_x_to_y"].astype(np.int64)
+    vx = torch.from_numpy(inputs["x_verts"]).float().to(device)
+    target = torch.from_numpy(inputs["y_verts"][mapping]).float().to(device)
+    cfg = ham.HamiltonianConfig(**setting)
+    box_x, box_y = df.box_normalization(vx, target, cfg.margin)
+    bx, by = box_x.to_box(vx), box_y.to_box(target)
+    samples = torch.from_numpy(farthest_point_sampling(bx.cpu(), cfg.samples, start=0)).to(device)
+    x0 = bx[samples]
+    edges, counts = knn_graph_edges(x0, cfg.knn)
+    graph = ham._Graph(edges, counts, edge_vectors(x0, edges))
+    coeffs = torch.zeros(df.n_fields(cfg.n_modes), device=device, requires_grad=True)
+    aniso = torch.eye(3, device=device).repeat(cfg.samples, 1, 1).requires_grad_(True)
+    log_lam = torch.tensor(math.log(cfg.lambda_inertia), device=device).requires_grad_(True)
+    optimizer = torch.optim.Adam([coeffs, aniso, log_lam], lr=cfg.lr)
+    goal = by[samples]
+
+    def op():
+        optimizer.zero_grad(set_to_none=True)
+        x_end, e_arap, _ = ham._simulate(x0, coeffs, aniso, log_lam, graph, cfg.n_steps, cfg)
+        loss = torch.nn.functional.mse_loss(x_end, goal) + cfg.lambda_reg * e_arap
+        loss.backward()
+        optimizer.step()
+        return float(loss.detach())
+    return op
+
+
+def build_case(case: str, golden: Path, device):
+    """The measured operation of ``case`` (a zero-argument callable), inputs loaded."""
+    if case in ("deep_shells_train", "deep_shells_query"):
+        return _deep_shells(golden, device, train=case.endswith("train"))
+    if case in ("gmsm_train", "gmsm_query"):
+        return _gmsm(golden, device, train=case.endswith("train"))
+    if case in HAMILTONIAN_SETTINGS:
+        return _hamiltonian(golden, device, HAMILTONIAN_SETTINGS[case])
+    raise SystemExit(f"error: unknown case {case!r}; one of {CASES}")
+
+
+def run_child(case: str, golden: Path, device_name: str, threads: int, repeats: int) -> dict:
+    import torch
+
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    device = torch.device(device_name)
+    cuda = device.type == "cuda"
+    op = build_case(case, golden, device)
+    cuda_base, baseline_kb, reset = bench_common.start_memory_span(device)
+    walls, cpus, value = [], [], None
+    for i in range(repeats + 1):  # the first call warms up (allocator, lazy initialization, kernels)
+        wall, cpu = time.perf_counter(), time.process_time()
+        value = op()
+        if cuda:
+            torch.cuda.synchronize(device)
+        if i > 0:
+            walls.append(time.perf_counter() - wall)
+            cpus.append(time.process_time() - cpu)
+    hwm = bench_common.status_kb("VmHWM") if reset else None
+    if hwm is None:
+        import resource
+
+        hwm = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    out = {"case": case, "device": device_name, "threads": threads, "seconds": walls, "cpu_seconds": cpus,
+           "seconds_median": statistics.median(walls), "cpu_seconds_median": statistics.median(cpus),
+           "value": value, "peak_rss_mb": hwm / 1024, "baseline_rss_mb": (baseline_kb or 0) / 1024,
+           "peak_source": "VmHWM after clear_refs" if reset else "ru_maxrss (process maximum)"}
+    if cuda:
+        peak = torch.cuda.max_memory_allocated(device)
+        out.update(cuda_max_allocated_mb=peak / MIB, cuda_baseline_allocated_mb=cuda_base / MIB,
+                   device_name=torch.cuda.get_device_name(device))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Parent: one fresh process per (case, device)
+# ----------------------------------------------------------------------------------------------------------
+def measure(case: str, golden: Path, device: str, repeats: int, timeout: float) -> dict:
+    device_name, threads = ("cuda", 1) if device == "cuda" else ("cpu", int(device[3:]))
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", case, "--golden", str(golden),
+           "--device", device_name, "--threads", str(threads), "--repeats", str(repeats)]
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        try:
+            proc = subprocess.run(cmd, stdout=out, stderr=err, text=True, cwd=REPO, env=env, timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return {"case": case, "device": device, "error": f"timed out after {timeout:.0f} s"}
+        out.seek(0), err.seek(0)
+        stdout, stderr = out.read(), err.read()
+    if proc.returncode != 0:
+        return {"case": case, "device": device, "error": stderr.strip().splitlines()[-1] if stderr.strip() else
+                f"exit {proc.returncode}"}
+    result = json.loads(stdout.strip().splitlines()[-1])
+    result["device"] = device
+    return result
+
+
+def _table(results: list[dict]) -> str:
+    lines = ["| case | device | CPU s (median) | wall s (median) | peak RSS MB | CUDA peak MB | original s | ratio |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        if "error" in r:
+            lines.append(f"| {r['case']} | {r['device']} | error: {r['error']} | | | | | |")
+            continue
+        ref = ORIGINAL_REFERENCE.get(r["case"], {}).get("seconds")
+        ratio = f"{ref / r['cpu_seconds_median']:.1f}x" if ref and r["device"] == "cpu1" else ""
+        cuda = f"{r['cuda_max_allocated_mb']:.0f}" if "cuda_max_allocated_mb" in r else ""
+        lines.append(f"| {r['case']} | {r['device']} | {r['cpu_seconds_median']:.2f} | {r['seconds_median']:.2f} | "
+                     f"{r['peak_rss_mb']:.0f} | {cuda} | {ref if ref else ''} | {ratio} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--golden", type=Path, default=None,
+                        help="deep_shells_golden folder (default $SHAPECORR_DEEP_SHELLS_GOLDEN, then the shared copy)")
+    parser.add_argument("--cases", nargs="+", default=["all"], help=f"any of {CASES} (default all)")
+    parser.add_argument("--devices", nargs="+", default=list(DEVICES), help="cpu1, cpu2, cuda (default all three)")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--timeout", type=float, default=1800.0, help="seconds per (case, device) process")
+    parser.add_argument("--out", type=Path, default=RESULT)
+    parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--device", default="cpu", help=argparse.SUPPRESS)
+    parser.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    golden = args.golden or Path(os.environ.get("SHAPECORR_DEEP_SHELLS_GOLDEN", DEFAULT_GOLDEN))
+    if not (golden / f"inputs_{PAIR}.npz").is_file():
+        print(f"error: {golden}: no inputs_{PAIR}.npz (set --golden or $SHAPECORR_DEEP_SHELLS_GOLDEN)", file=sys.stderr)
+        return 2
+    if args.child:
+        print(json.dumps(run_child(args.child, golden, args.device, args.threads, args.repeats)))
+        return 0
+    cases = list(CASES) if args.cases == ["all"] else args.cases
+    unknown = sorted(set(cases) - set(CASES)) + sorted(set(args.devices) - set(DEVICES))
+    if unknown:
+        print(f"error: unknown cases/devices {unknown}; cases {CASES}, devices {DEVICES}", file=sys.stderr)
+        return 2
+    import torch
+
+    devices = [d for d in args.devices if d != "cuda" or torch.cuda.is_available()]
+    if len(devices) < len(args.devices):
+        print("cuda: not available, skipped", file=sys.stderr)
+    results = []
+    for case in cases:
+        for device in devices:
+            result = measure(case, golden, device, args.repeats, args.timeout)
+            results.append(result)
+            shown = result.get("error") or (f"cpu {result['cpu_seconds_median']:.2f} s, wall "
+                                            f"{result['seconds_median']:.2f} s, peak {result['peak_rss_mb']:.0f} MB")
+            print(f"{case:24s} {device:5s} {shown}", flush=True)
+    previous = json.loads(args.out.read_text()) if args.out.is_file() else {}
+    merged = {(r["case"], r["device"]): r for r in previous.get("results", [])}
+    merged.update({(r["case"], r["device"]): r for r in results})
+    report = {
+        "benchmark": "speed",
+        "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "command": " ".join([Path(sys.executable).name, *sys.argv]),
+        "inputs": {"golden": PAIR, "train_samples": TRAIN_SAMPLES, "hamiltonian": HAMILTONIAN_SETTINGS},
+        "repeats": args.repeats,
+        "machine": bench_common.machine_info(),
+        "original_reference": ORIGINAL_REFERENCE,
+        "target_ratio": TARGET_RATIO,
+        "results": sorted(merged.values(), key=lambda r: (CASES.index(r["case"]), r["device"])),
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=1) + "\n")
+    print(_table(report["results"]))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
