@@ -122,10 +122,20 @@ def _learned_unit(model, pair, train: bool, optimizer=None):
     return step
 
 
+def _published_loss(model: str):
+    """The loss of ``configs/model/<model>.yaml`` (its composed ``model.loss`` node), built."""
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        return instantiate(compose("train", overrides=[f"model={model}"]).model.loss, _convert_="object")
+
+
 def _deep_shells(golden: Path, device, train: bool):
     from shapecorr.models.deep_shells import DeepShells
 
-    model = DeepShells(num_samples=TRAIN_SAMPLES, pretrained=golden / WEIGHTS).to(device).train(train)
+    model = DeepShells(num_samples=TRAIN_SAMPLES, pretrained=golden / WEIGHTS,
+                       loss=_published_loss("deep_shells")).to(device).train(train)
     return _learned_unit(model, _golden_pair(golden, device), train)
 
 
@@ -136,7 +146,8 @@ def _gmsm(golden: Path, device, train: bool):
     from shapecorr.nn.diffusion_net import DiffusionNetBackbone
 
     torch.manual_seed(0)
-    model = GMSM(backbone=DiffusionNetBackbone(), num_samples=TRAIN_SAMPLES).to(device).train(train)
+    model = GMSM(backbone=DiffusionNetBackbone(), num_samples=TRAIN_SAMPLES, loss=_published_loss("gmsm"))
+    model = model.to(device).train(train)
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-4) if train else None
     return _learned_unit(model, _golden_pair(golden, device, diffusion=True), train, optimizer)
 

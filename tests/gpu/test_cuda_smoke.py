@@ -96,26 +96,34 @@ def _assert_step_agrees(out, rtol=1e-3):
     assert float((grad_gpu - grad_cpu).norm() / grad_cpu.norm()) < 10 * rtol
 
 
+@pytest.fixture(scope="module")
+def published_loss(compose_config):
+    """``published_loss(model)``: the loss of ``configs/model/<model>.yaml`` (its ``model.loss`` node), built."""
+    from hydra.utils import instantiate
+
+    return lambda model: instantiate(compose_config("train", [f"model={model}"]).model.loss, _convert_="object")
+
+
 def _map_agreement(model, x, y) -> float:
     """Fraction of vertices of x mapped to the same vertex of y on both devices."""
     maps = {d: copy.deepcopy(model).to(d).eval().match(x.to(d), y.to(d)).p2p.cpu() for d in ("cpu", "cuda")}
     return float((maps["cpu"] == maps["cuda"]).float().mean())
 
 
-def test_deep_shells_cuda(pair):
+def test_deep_shells_cuda(pair, published_loss):
     from shapecorr.models.deep_shells import DeepShells
     from shapecorr.nn.spectral_conv import SpectralBackbone
 
     batch, _ = pair
     torch.manual_seed(0)
     model = DeepShells(backbone=SpectralBackbone(in_channels=N_CHANNELS, out_channels=8, num_eigs=30),
-                       num_samples=150, layer=dict(k_array=[6, 8, 10], refine_k_min=6, refine_k_max=25,
-                                                   refine_levels=4))
+                       loss=published_loss("deep_shells"), num_samples=150,
+                       layer=dict(k_array=[6, 8, 10], refine_k_min=6, refine_k_max=25, refine_levels=4))
     _assert_step_agrees(_train_step_both(model, batch))
     assert _map_agreement(model, batch.x, batch.y) > 0.95
 
 
-def test_gmsm_cuda(pair):
+def test_gmsm_cuda(pair, published_loss):
     from shapecorr.models.gmsm import GMSM
     from shapecorr.nn.diffusion_net import DiffusionNetBackbone
 
@@ -123,20 +131,21 @@ def test_gmsm_cuda(pair):
     torch.manual_seed(0)
     # dropout off: its random masks differ between the devices
     model = GMSM(backbone=DiffusionNetBackbone(k_eig=32, out_channels=8, width=8, n_blocks=1, dropout=0.0),
-                 num_samples=150, layer={"k_array": [6, 10, 14], "refine_k_max": 20, "refine_levels": 2})
+                 loss=published_loss("gmsm"), num_samples=150,
+                 layer={"k_array": [6, 10, 14], "refine_k_max": 20, "refine_levels": 2})
     _assert_step_agrees(_train_step_both(model, batch))
     assert _map_agreement(model, batch.x, batch.y) > 0.95
 
 
-def test_neuromorph_cuda(pair, tmp_path):
+def test_neuromorph_cuda(pair, tmp_path, published_loss):
     from shapecorr.models.neuromorph import NeuroMorph
     from shapecorr.nn.edgeconv_backbone import EdgeConvBackbone
 
     batch, _ = pair
     torch.manual_seed(0)
     small = dict(hidden_channels=16, n_blocks=2)
-    model = NeuroMorph(backbone=EdgeConvBackbone(feature_dim=16, **small), interpolator=small,
-                       cache_dir=str(tmp_path))
+    model = NeuroMorph(backbone=EdgeConvBackbone(feature_dim=16, **small), interpolation_net=small,
+                       loss=published_loss("neuromorph"), cache_dir=str(tmp_path))
     out = _train_step_both(model, batch)
     _assert_step_agrees(out, rtol=2e-3)
 
