@@ -18,7 +18,6 @@ only approached: the result is then the closest of the runs.
 
 from __future__ import annotations
 
-import gpytoolbox
 import igl
 import numpy as np
 
@@ -86,6 +85,10 @@ def remesh(
     if not area > 0:
         raise InvalidMeshError("mesh has zero area; cannot remesh it")
     h = np.sqrt(2.0 * area / (np.sqrt(3.0) * n_verts))
+    # imported here: gpytoolbox (and the solver package it loads) costs ~0.5 s at import, and only this
+    # function of the package needs it
+    import gpytoolbox
+
     best = None
     too_fine, too_coarse = None, None  # edge lengths known to give too many / too few vertices
     for _ in range(max_rounds):
