@@ -93,7 +93,7 @@ def _node_keys(node) -> list[str]:
 
 def _child(node, part: str):
     """The child ``part`` of ``node`` without resolving interpolations; raises KeyError when there is none."""
-    if isinstance(node, DictConfig) and part in node:
+    if isinstance(node, DictConfig) and part in node.keys():  # `in node` is False for a missing (???) value
         return node._get_node(part)
     if isinstance(node, ListConfig) and part.lstrip("-").isdigit() and -len(node) <= int(part) < len(node):
         return node._get_node(int(part))
@@ -240,7 +240,10 @@ def check_overrides(config_dir: str | Path, config_name: str, overrides: list[st
                 base = compose(config_name, overrides=group_overrides)
             except HydraException as err:
                 raise ConfigError(f"invalid configuration: {_one_line(err)}") from None
+            deleted = {key for _, prefix, key, _, _ in value_overrides if prefix == "~"}
             for override, prefix, key, first, _ in value_overrides:
+                if prefix in ("+", "++") and any(key == d or key.startswith(d + ".") for d in deleted):
+                    continue  # re-added after a deletion (~key +key=...)
                 if prefix in ("+", "++") and f_in_config(base, key):
                     if prefix == "+":
                         raise ConfigError(f"+{key}: {key} is already in the config; write {key}={first}")

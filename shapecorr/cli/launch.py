@@ -136,8 +136,8 @@ def _check_path(cfg: DictConfig, key: str, selected: str, folder: bool, allow_nu
         value = OmegaConf.select(cfg, parent)[leaf]
     except Exception:  # noqa: BLE001 - an interpolation error is reported when the run resolves it
         return
-    if value is None:
-        if allow_null:
+    if value is None or str(value).strip() == "":  # an empty environment variable counts as unset
+        if allow_null and value is None:
             return
         raise ConfigError(f"{key} is not set: {selected} needs a {kind}; give {key}=PATH{env_hint} "
                           f"(where to get it: {DATA_SECTION})")

@@ -3,9 +3,11 @@
 One number, the threads of each process, sets torch's intra-op threads and the thread pools of the BLAS and
 OpenMP libraries (through their environment variables, read when the libraries load, and through
 ``threadpoolctl`` for libraries already loaded). ``threads=null`` (the default) divides the available cores
-among the processes of the run: ``cores // workers`` (at least 1) for ``workers`` worker processes, all cores
-without workers, so the run never starts more busy threads than there are cores; an ``OMP_NUM_THREADS`` set by
-the user is kept then. Spawned workers inherit the environment variables, so each gets the same share.
+that other processes leave free (the cores minus the whole part of the 1-minute load average) among the
+processes of the run: ``free // workers`` (at least 1) for ``workers`` worker processes, all free cores without
+workers, so the run never starts more busy threads than there are cores; an ``OMP_NUM_THREADS`` set by the user
+is kept then (lowered to that share). Spawned workers inherit the environment variables, so each gets the same
+share.
 
 Why it matters: torch's own default (one thread per core) on top of OpenBLAS's own pool (one per core again)
 oversubscribes a small machine; OpenMP threads then spin waiting for each other and a run can be several times
@@ -32,8 +34,22 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
+def free_cores(cores: int | None = None, load: float | None = None) -> int:
+    """The cores not busy with other processes: ``cores`` minus the whole part of the 1-minute load average.
+
+    At least 1. ``load`` defaults to :func:`os.getloadavg` (0 where the platform has none).
+    """
+    cores = available_cores() if cores is None else cores
+    if load is None:
+        try:
+            load = os.getloadavg()[0]
+        except (AttributeError, OSError):  # not available (Windows)
+            load = 0.0
+    return max(1, cores - int(load))
+
+
 def threads_per_process(threads, workers=0, cores: int | None = None,
-                        environ: Mapping[str, str] | None = None) -> int:
+                        environ: Mapping[str, str] | None = None, load: float | None = None) -> int:
     """The threads each process of a run uses.
 
     Parameters
@@ -44,6 +60,9 @@ def threads_per_process(threads, workers=0, cores: int | None = None,
         Worker processes that compute side by side (``workers=``); 0 or None: this process alone.
     cores : int, optional
         Available cores (default :func:`available_cores`).
+    load : float, optional
+        1-minute load average of the machine (default :func:`os.getloadavg`): the default share counts only the
+        cores other processes leave free (:func:`free_cores`).
     environ : mapping, optional
         Environment (default ``os.environ``): with ``threads`` None, a positive ``OMP_NUM_THREADS`` set by the
         user is kept, lowered to the share when it is larger.
@@ -53,9 +72,8 @@ def threads_per_process(threads, workers=0, cores: int | None = None,
     ConfigError
         ``threads`` or ``workers`` is not a non-negative integer (``threads`` positive).
     """
-    cores = available_cores() if cores is None else cores
     workers = _count(workers, "workers", minimum=0)
-    share = max(1, cores // max(1, workers))
+    share = max(1, free_cores(cores, load) // max(1, workers))
     if threads is None or (isinstance(threads, str) and threads.strip().lower() in ("auto", "null", "")):
         environ = os.environ if environ is None else environ
         try:
