@@ -36,7 +36,7 @@ METHODS = {
     "gmsm": (["model=gmsm"], 2),
     "smooth_shells": (["model=smooth_shells"], 1),
     "divfree": (["model=divfree", "model.samples=[250,500,500]", "model.iterations=[20,20,40]"], 1),
-    "hamiltonian": (["model=hamiltonian", "model.n_modes=3", "model.iterations=10"], 1),
+    "hamiltonian": (["model=hamiltonian", "model.n_modes=3", "model.iterations=3"], 1),
 }
 THREADS = (1, 2)
 

@@ -29,6 +29,8 @@ from shapecorr.errors import ConfigError
 #: Maps whose keys are names chosen by the user (each documented where it is defined).
 OPEN_MAPS = ("callbacks", "operators", "operators.request", "operators.params", "data.operators.request",
              "data.operators.params")
+#: Maps whose keys are the fields of a dataclass (``+data.synthetic.n_holes=1``: any generator option).
+FIELD_MAPS = {"data.synthetic": "shapecorr.data.synthetic.config.SyntheticConfig"}
 #: How many close names a message lists at most.
 MAX_SUGGESTIONS = 3
 #: Similarity (difflib ratio) below which a name is not suggested.
@@ -151,6 +153,8 @@ def check_key(cfg: DictConfig, prefix: str, key: str, value: str) -> None:
                 # the config lacks the key but the constructor takes it: adding it is the fix
                 raise ConfigError(f"{shown}: {parent_path} has no key {part!r} in the config, but {target[0]} "
                                   f"takes it: write +{key}={value}")
+        if is_last and prefix in ("+", "++"):
+            accepted |= _field_names(parent_path)
         matches = closest(part, set(names) | accepted)
         where = f"{parent_path}" if parent_path else "the config"
         rest = parts[depth + 1:]
@@ -173,10 +177,23 @@ def f_in_config(cfg: DictConfig, key: str) -> bool:
     return True
 
 
+def _field_names(parent_path: str) -> set[str]:
+    """The fields of the dataclass behind a map of :data:`FIELD_MAPS` (empty for other paths)."""
+    if parent_path not in FIELD_MAPS:
+        return set()
+    import dataclasses
+
+    from hydra.utils import get_object
+
+    return {f.name for f in dataclasses.fields(get_object(FIELD_MAPS[parent_path]))}
+
+
 def _accepts(node, parent_path: str, part: str) -> bool:
     """Whether a key ``part`` added under ``node`` (at ``parent_path``) is read by anything."""
     if not isinstance(node, DictConfig):
         return False
+    if parent_path in FIELD_MAPS:
+        return part in _field_names(parent_path)
     if parent_path in OPEN_MAPS or len(node) == 0:
         return True
     target = _target_parameters(node)

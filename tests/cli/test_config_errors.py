@@ -24,6 +24,7 @@ CONFIGS = REPO / "configs"
     ("train", ["modl=deep_shells"], "did you mean model=deep_shells"),
     ("evaluate", ["data=faust", "data.root=/x"], "did you mean data=faust_r"),
     ("train", ["-m", "model=deep_shells,neuromorp"][1:], "did you mean model=neuromorph"),
+    ("train", ["+data.synthetic.n_hole=1"], "did you mean +data.synthetic.n_holes=1"),
 ])
 def test_unknown_names_suggest_the_closest(config, overrides, expected):
     with pytest.raises(ConfigError) as err:
@@ -41,6 +42,7 @@ def test_unknown_names_suggest_the_closest(config, overrides, expected):
     ("prepare", ["+operators.n_eig=300"]),
     ("evaluate", ["model=smooth_shells,descriptor_nn"]),   # a sweep: every value checked
     ("train", ["hydra.run.dir=/tmp/x", "~logger"]),
+    ("train", ["+data.synthetic.n_holes=1", "+data.synthetic.test_fraction=0.34"]),   # generator options
     ("evaluate", ["data=faust_r", "data.root=/x", "~data.splits.test", "+data.splits.test={names:[a,b]}"]),
 ])
 def test_valid_command_lines_pass(config, overrides):
