@@ -38,7 +38,7 @@ def test_unknown_names_suggest_the_closest(config, overrides, expected):
     ("train", ["trainer.max_steps=3", "model=neuromorph", "data=synthetic_small"]),
     ("train", ["+callbacks.extra={_target_: pytorch_lightning.callbacks.Timer}"]),   # an open map
     ("train", ["model=deep_shells", "model/backbone=identity"]),
-    ("evaluate", ["model=descriptor_nn", "matching=pairwise", "threads=1", "workers=2"]),
+    ("evaluate", ["model=descriptor_nn", "threads=1", "workers=2", "max_pairs=3"]),
     ("prepare", ["+operators.n_eig=300"]),
     ("evaluate", ["model=smooth_shells,descriptor_nn"]),   # a sweep: every value checked
     ("train", ["hydra.run.dir=/tmp/x", "~logger"]),
