@@ -23,9 +23,9 @@ the published schedule compressed to the run: T = 0 and lambda_geo = 50 for the 
 lambda_geo = 0 (published: epochs 0-299 and 300-449 of 600, then T = 3 and 7). Remesh pool: 4 resolutions per
 shape instead of 8, which halves the one-off remeshing/geodesics cost inside the budget.
 
-``--variant geodesic-map`` trains with :data:`GEODESIC_MAP_OVERRIDES` instead: ``model.map_gradient=geodesic`` (only
-the geodesic term trains the soft maps, README "NeuroMorph: why map_gradient exists"), Adam 1e-3, the geodesic
-phase for 8 epochs, 1 h 55 min; its results go to ``results/neuromorph_faust_r_geodesic_map.json``.
+``--variant geodesic-map`` trains with :data:`GEODESIC_MAP_OVERRIDES` instead: ``model.map_gradient=geodesic``
+(only the geodesic term trains the soft maps, docs/benchmarks.md "NeuroMorph: why map_gradient exists"), Adam 1e-3,
+the geodesic phase for 8 epochs, 1 h 55 min; its results go to ``results/neuromorph_faust_r_geodesic_map.json``.
 
 ``--interpolation`` compares, on the test pairs, NeuroMorph's interpolation at t = 0.5 with the linear blend of
 the same model's correspondence (issue 6): at the working resolution (what the network sees) with the soft target

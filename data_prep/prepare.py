@@ -7,6 +7,7 @@ Options: configs/prepare.yaml (and `--help`).
 
 import hydra
 
+from shapecorr.cli.launch import check_command_line
 from shapecorr.cli.prepare import prepare
 
 
@@ -17,4 +18,6 @@ def main(cfg) -> None:
 
 
 if __name__ == "__main__":
+    # --help, unknown options, dataset/weights paths and thread variables, before torch loads
+    check_command_line(__file__, "prepare", __doc__)
     main()

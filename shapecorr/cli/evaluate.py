@@ -75,6 +75,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from shapecorr.cli.common import EXIT_INTERRUPTED, check_output_dir, exit_on_user_error, user_config_error
+from shapecorr.cli.threads import configure_threads
 from shapecorr.data.cache import atomic_open
 from shapecorr.data.datasets import PairDataset, check_pair_names, pair_name
 from shapecorr.data.operators import required_request
@@ -434,6 +435,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     its summary (the written paths).
     """
     try:
+        configure_threads(cfg)
         if task_option(cfg) == "pose_transfer":
             from shapecorr.cli.pose_transfer import run_pose_transfer
 

@@ -19,6 +19,7 @@ ConfigError: ``error: <message>`` and exit status 2, without a traceback.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +32,9 @@ from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
 from pytorch_lightning.utilities.exceptions import MisconfigurationException
 
 from shapecorr.cli.common import check_output_dir, exit_on_user_error, user_config_error
+from shapecorr.cli.plain_progress import PlainProgress
+from shapecorr.cli.run_log import stdout_is_terminal
+from shapecorr.cli.threads import configure_threads
 from shapecorr.data.operators import required_request
 from shapecorr.errors import ConfigError
 from shapecorr.models.recipe import build_model, load_model, save_recipe
@@ -115,6 +119,8 @@ def checkpoint_callback(cfg: DictConfig, out_dir: Path) -> ModelCheckpoint:
 def build_callbacks(cfg: DictConfig, out_dir: Path) -> list[pl.Callback]:
     """ModelCheckpoint (last + periodic), with a logger the learning-rate monitor, then ``cfg.callbacks``."""
     callbacks: list[pl.Callback] = [checkpoint_callback(cfg, out_dir)]
+    if not stdout_is_terminal():  # plain progress lines instead of the redrawn bar
+        callbacks.append(PlainProgress())
     if cfg.get("logger"):
         callbacks.append(LearningRateMonitor(logging_interval="step"))
     # Callbacks of the model / experiment configs (e.g. NeuroMorph's epoch schedules), by name; null disables one.
@@ -139,7 +145,9 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         pairs, or None without ``test``), ``test_pairs``, ``output_dir``.
     """
     try:
+        configure_threads(cfg)
         out_dir = check_output_dir(Path(str(cfg.paths.output_dir)), "paths.output_dir=DIR or hydra.run.dir=DIR")
+        print(f"output folder: {out_dir}", flush=True)
         pl.seed_everything(int(cfg.seed), workers=True)
         ckpt_path = cfg.get("ckpt_path")
         dm = _instantiate(cfg.data, "data module")
@@ -149,7 +157,9 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         else:
             model = build_model(cfg.model)
         logger = _instantiate(cfg.logger, "logger") if cfg.get("logger") else False
-        trainer = _instantiate(cfg.trainer, "trainer", callbacks=build_callbacks(cfg, out_dir), logger=logger)
+        progress = {} if stdout_is_terminal() else {"enable_progress_bar": False}
+        trainer = _instantiate(cfg.trainer, "trainer", callbacks=build_callbacks(cfg, out_dir), logger=logger,
+                               **progress)
     except OmegaConfBaseException as err:
         raise user_config_error(err) from err
     if not any(p.requires_grad for p in model.parameters()):
@@ -179,5 +189,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             mean = float(np.mean(np.concatenate(errors)))
             result.update(test_error=mean, test_pairs=len(errors))
             print(f"test geodesic error: {mean:.4f} (fraction of sqrt(area)) over {len(errors)} pairs", flush=True)
+    # on stderr: the test error stays the last line of stdout
+    print(f"output folder: {out_dir} (checkpoints/, train.log)", file=sys.stderr, flush=True)
     return result
 
