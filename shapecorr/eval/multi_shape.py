@@ -657,7 +657,9 @@ def summary_line(report: dict) -> str:
     if cc["mean"] is None:
         return f"{report['variant']} shape graph: no triplet for cycle consistency"
     line = (f"cycle consistency ({report['variant']} graph, {report['cost']} cost): {cc['mean']:.4f} over "
-            f"{cc['n_triplets']} triplets (pairwise maps: {pw['mean']:.4f})")
+            f"{cc['n_triplets']} triplets")
+    if pw["mean"] is not None:
+        line += f" (pairwise maps: {pw['mean']:.4f} over {pw['n_triplets']})"
     if report["pairwise"]["mean_geodesic_error"] is not None:
         line += f"; pairwise maps' mean error {report['pairwise']['mean_geodesic_error']:.4f}"
     return line
