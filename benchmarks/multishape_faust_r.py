@@ -3,9 +3,10 @@
     python benchmarks/multishape_faust_r.py --faust-r DIR --model deep_shells_published [--every 2] \
         [--variants full mst star tsp] [--costs auto cycle] [--device cuda] [--run-dir DIR] [--out JSON]
 
-1. A folder of FAUST_r test shapes (``tr_reg_080`` .. ``tr_reg_099``, every ``--every``-th, or ``--shapes``) is
-   linked under ``RUN_DIR/data`` (``off/`` and ``corres/``; no ``splits/``, so every shape is in the test split).
-2. ``evaluate.py model=MODEL multishape=graph data=folder data.root=RUN_DIR/data`` (first variant and cost) queries
+1. The test split is the FAUST_r test shapes (``tr_reg_080`` .. ``tr_reg_099``), every ``--every``-th, or
+   ``--shapes``: ``data=folder data.root=FAUST_R ~data.splits.test +data.splits.test={names:[...]}`` (the FAUST_r
+   folder as any folder; its shape cache is shared with ``data=faust_r`` runs).
+2. ``evaluate.py model=MODEL multishape=graph data=folder ...`` (first variant and cost) queries
    all n (n - 1) ordered pairs once (``RUN_DIR/<variant>_<cost>/graph_queries``, resumable) and scores the composed
    maps of all ordered pairs; ``metrics.json["multi_shape"]["pairwise"]`` scores the direct maps of the same
    queries, i.e. ``evaluate.py model=MODEL`` without the graph, on the same pairs.
@@ -34,24 +35,12 @@ REPO = Path(__file__).resolve().parents[1]
 TEST_SHAPES = [f"tr_reg_{i:03d}" for i in range(80, 100)]
 
 
-def link_folder(faust_r: Path, names: list[str], root: Path) -> Path:
-    """``root/off/<name>.off`` and ``root/corres/<name>{.vts,.sym.vts}`` as links into ``faust_r``."""
-    for sub in ("off", "corres"):
-        (root / sub).mkdir(parents=True, exist_ok=True)
-    for name in names:
-        for sub, suffix in (("off", ".off"), ("corres", ".vts"), ("corres", ".sym.vts")):
-            src, dst = faust_r / sub / f"{name}{suffix}", root / sub / f"{name}{suffix}"
-            if not src.is_file():
-                raise SystemExit(f"error: {src} does not exist (is --faust-r the FAUST_r folder?)")
-            if not dst.exists():
-                dst.symlink_to(src.resolve())
-    return root
-
-
-def run_evaluate(args, data: Path, out: Path, variant: str, cost: str, first: bool) -> dict:
+def run_evaluate(args, names: list[str], out: Path, variant: str, cost: str, first: bool) -> dict:
+    split = "{names:[" + ",".join(names) + "]}"
     command = [sys.executable, "evaluate.py", f"model={args.model}", "multishape=graph",
-               f"multishape.variant={variant}", f"multishape.cost={cost}", "data=folder", f"data.root={data}",
-               f"output_dir={out}", f"device={args.device}", "progress=false",
+               f"multishape.variant={variant}", f"multishape.cost={cost}", "data=folder",
+               f"data.root={args.faust_r}", "~data.splits.test", f"+data.splits.test={split}", f"output_dir={out}",
+               f"device={args.device}", "progress=false",
                f"n_examples={4 if first else 0}", f"write_maps={'true' if first else 'false'}", *args.extra]
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads), "PYTHONPATH": str(REPO)}
     print(" ".join(command[1:]), flush=True)
@@ -95,7 +84,6 @@ def main(argv: list[str]) -> dict:
         raise SystemExit("error: give --faust-r DIR or set SHAPECORR_FAUST_R")
     names = args.shapes or TEST_SHAPES[:: max(args.every, 1)]
     run_dir = args.run_dir or Path(f"/tmp/multishape_{args.model}_{len(names)}")
-    data = link_folder(Path(args.faust_r), names, run_dir / "data")
     runs, first_dir = [], None
     for cost in args.costs:
         for variant in args.variants:
@@ -105,7 +93,7 @@ def main(argv: list[str]) -> dict:
             elif not (out / "graph_queries").exists():
                 out.mkdir(parents=True, exist_ok=True)
                 (out / "graph_queries").symlink_to((first_dir / "graph_queries").resolve())
-            runs.append(run_evaluate(args, data, out, variant, cost, first=out == first_dir))
+            runs.append(run_evaluate(args, names, out, variant, cost, first=out == first_dir))
             r = runs[-1]
             print(f"{variant:5s} {r['cost']:9s}: error {r['mean_geodesic_error']:.4f} (pairwise "
                   f"{r['pairwise_mean_geodesic_error']:.4f}), AUC {r['pck_auc']:.3f} (pairwise "

@@ -19,7 +19,7 @@ Options: ``configs/evaluate.yaml``. Steps of ``task=match`` (the default):
 3. Evaluate this rank's shard of the pairs (:mod:`shapecorr.eval.protocol`): per-pair records, maps. With
    ``multishape=graph`` the model is first queried on the split's candidate pairs (sharded, resumable) and the
    pairs get the maps composed through the shape graph (:class:`~shapecorr.eval.multi_shape.MultiShapeMatcher`,
-   docs/evaluation.md §8); ``metrics.json["multi_shape"]`` then reports cycle consistency.
+   docs/evaluation.md §7); ``metrics.json["multi_shape"]`` then reports cycle consistency.
 4. Rank 0 merges the records of all pairs into ``metrics.json``, ``per_pair.csv``, ``pck.png`` and renders
    ``examples/<x>__<y>.png``.
 
@@ -198,10 +198,7 @@ def apply_postprocess(cfg: DictConfig, matcher):
         return matcher
     if "_target_" not in post_cfg:
         raise ConfigError("the postprocess config has no _target_ (use postprocess=smooth_shells or postprocess=null)")
-    try:
-        wrapped = hydra.utils.instantiate(post_cfg, _convert_="object", _partial_=True)(matcher=matcher)
-    except hydra.errors.InstantiationException as err:
-        raise ConfigError(f"cannot build the postprocess step: {err}") from None
+    wrapped = _wrap(post_cfg, matcher, "the postprocess step")
     if not isinstance(wrapped, Matcher):
         raise ConfigError(f"{type(wrapped).__name__} has no match(x, y) method; it cannot post-process a matcher")
     return wrapped
@@ -211,20 +208,25 @@ def with_multishape(cfg: DictConfig, matcher):
     """``matcher`` wrapped in the ``multishape=`` group's :class:`~shapecorr.eval.multi_shape.MultiShapeMatcher`.
 
     Itself without the group. The wrapper queries the split's pairs in :func:`evaluate` (``prepare``) before the
-    per-pair loop scores its composed maps (docs/evaluation.md §8).
+    per-pair loop scores its composed maps (docs/evaluation.md §7).
     """
     node = cfg.get("multishape")
     if node is None:
         return matcher
     if "_target_" not in node:
         raise ConfigError("the multishape config has no _target_ (use multishape=graph or multishape=null)")
-    try:
-        wrapped = hydra.utils.instantiate(node, _convert_="object", _partial_=True)(matcher=matcher)
-    except hydra.errors.InstantiationException as err:
-        raise ConfigError(f"cannot build the multishape wrapper: {err}") from None
+    wrapped = _wrap(node, matcher, "the multishape wrapper")
     if not isinstance(wrapped, multi_shape.MultiShapeMatcher):
         raise ConfigError(f"multishape: {node._target_} is not a MultiShapeMatcher")
     return wrapped
+
+
+def _wrap(node: DictConfig, matcher, what: str):
+    """A wrapper group's partial config (``_partial_: true``) called with ``matcher=matcher``."""
+    try:
+        return hydra.utils.instantiate(node, _convert_="object", _partial_=True)(matcher=matcher)
+    except hydra.errors.InstantiationException as err:
+        raise ConfigError(f"cannot build {what}: {err}") from None
 
 
 def multishape_of(matcher) -> multi_shape.MultiShapeMatcher | None:

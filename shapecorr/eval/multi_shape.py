@@ -3,7 +3,7 @@
 G-MSM (Eisenberger et al., "G-MSM: Unsupervised Multi-Shape Matching with Graph-based Affinity Priors", CVPR
 2023; docs/gmsm.md §4) queries pairs of a collection, builds a shape graph from the pair costs
 (:mod:`shapecorr.matching.shape_graph`) and composes every pair's map along its shortest path. Here this is a
-wrapper around any matcher (``evaluate.py model=<any> multishape=graph``, docs/evaluation.md §8):
+wrapper around any matcher (``evaluate.py model=<any> multishape=graph``, docs/evaluation.md §7):
 :class:`MultiShapeMatcher` queries the pairs (sharded over ranks, one resumable file per query), builds the
 graph, and then answers ``match(x, y)`` with the composed map, so that the normal per-pair protocol scores it.
 G-MSM's training callback builds its graph with the same functions (:func:`query_pairs`,

@@ -8,7 +8,7 @@ Priors", CVPR 2023 (docs/gmsm.md §3, §5). Built on the Deep Shells layer (:mod
 - :func:`two_sided_alignment_cost`: mean squared product-space distance over the two-sided pairs of two maps,
   with :func:`full_resolution_shells` also G-MSM's graph loss;
 - :func:`alignment_cost_of_maps`: the same cost for maps computed by any means (the ``(C, tau)`` fitted to the
-  maps by least squares), the pair cost of Deep Shells in a multi-shape evaluation (docs/evaluation.md §8).
+  maps by least squares), the pair cost of Deep Shells in a multi-shape evaluation (docs/evaluation.md §7).
 """
 
 from __future__ import annotations
