@@ -15,8 +15,9 @@
 
 Each run is a subprocess with ``OMP_NUM_THREADS=--threads``; extra ``evaluate.py`` options follow ``--``. Writes
 ``--out`` (default ``benchmarks/results/multishape_<model>_faust_r<n>.json``) with, per run: mean geodesic error,
-PCK AUC, cycle consistency of the composed and of the pairwise maps, pairwise mean error / AUC, seconds per query
-and per pair, graph seconds.
+PCK AUC, cycle consistency of the composed and of the pairwise maps, pairwise mean error / AUC, the rank
+correlation of pair cost and pairwise error, seconds per query and per pair, graph seconds. Re-running the same
+command resumes (queries and pairs already written are not computed again; the reports are).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ def run_evaluate(args, names: list[str], out: Path, variant: str, cost: str, fir
     command = [sys.executable, "evaluate.py", f"model={args.model}", "multishape=graph",
                f"multishape.variant={variant}", f"multishape.cost={cost}", "data=folder",
                f"data.root={args.faust_r}", "~data.splits.test", f"+data.splits.test={split}", f"output_dir={out}",
-               f"device={args.device}", "progress=false",
+               f"device={args.device}", "progress=true",
                f"n_examples={4 if first else 0}", f"write_maps={'true' if first else 'false'}", *args.extra]
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads), "PYTHONPATH": str(REPO)}
     print(" ".join(command[1:]), flush=True)
@@ -59,6 +60,7 @@ def run_evaluate(args, names: list[str], out: Path, variant: str, cost: str, fir
         "n_triplets": ms["cycle_consistency"]["n_triplets"],
         "pairwise_mean_geodesic_error": ms["pairwise"]["mean_geodesic_error"],
         "pairwise_pck_auc": ms["pairwise"]["pck_auc"],
+        "cost_error_spearman": ms["pairwise"].get("cost_error_spearman"),
         "seconds_per_query": ms["seconds_per_query"], "seconds_per_pair": metrics["seconds_per_pair"],
         "graph_seconds": ms["graph_seconds"], "unreachable_pairs": ms["unreachable_pairs"],
     }

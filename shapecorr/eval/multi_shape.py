@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.stats import spearmanr
 from tqdm.auto import tqdm
 
 from shapecorr.data.cache import atomic_open
@@ -605,7 +606,9 @@ class MultiShapeMatcher:
 
         ``cycle_consistency`` of the composed maps and ``cycle_consistency_pairwise`` of the direct (queried)
         maps over at most ``max_triplets`` ordered triplets; ``pairwise``: mean geodesic error and PCK AUC of
-        the direct maps on the evaluated ``pairs`` (what the matcher alone scores on them).
+        the direct maps on the evaluated ``pairs`` (what the matcher alone scores on them), and the Spearman rank
+        correlation between the pair cost and the direct map's mean error over the queried evaluated pairs (how well
+        the cost tells good from bad maps; None when either is constant).
         """
         if self.collection is None:
             raise ConfigError("MultiShapeMatcher.report before prepare()")
@@ -626,16 +629,21 @@ class MultiShapeMatcher:
             return areas[i]
 
         triplets = sample_triplets(len(col.names), self.max_triplets)
-        errors = []
+        errors, costs = [], []
         for i, j in pairs:
             p2p = col.direct_map(i, j)
             if p2p is not None:
                 errors.append(score_map(torch.from_numpy(p2p), shapes[i], shapes[j], dist(j))["errors"])
-        pairwise = {"n_pairs": len(errors), "mean_geodesic_error": None, "pck_auc": None}
+                costs.append(col.graph.costs[i, j])
+        pairwise = {"n_pairs": len(errors), "mean_geodesic_error": None, "pck_auc": None, "cost_error_spearman": None}
         if errors:
             t, frac = metrics.pck_curve(np.concatenate(errors))
-            pairwise.update(mean_geodesic_error=float(np.mean([e.mean() for e in errors])),
-                            pck_auc=metrics.pck_auc(t, frac))
+            means = np.array([e.mean() for e in errors])
+            pairwise.update(mean_geodesic_error=float(means.mean()), pck_auc=metrics.pck_auc(t, frac))
+            queried = np.isfinite(costs)
+            if queried.sum() > 2 and np.ptp(np.asarray(costs)[queried]) > 0 and np.ptp(means[queried]) > 0:
+                rho = spearmanr(np.asarray(costs)[queried], means[queried]).statistic
+                pairwise["cost_error_spearman"] = float(rho)
         finite = col.graph.costs[np.isfinite(col.graph.costs)]
         return {
             "variant": self.variant, "cost": "+".join(self.cost_kinds), "n_shapes": len(col.names),

@@ -110,6 +110,7 @@ def test_graph_routes_around_a_wrong_expensive_pair(folder, evaluate_on_folder, 
     assert per_pair[WRONG] == pytest.approx(0.0, abs=1e-6) and per_pair[WRONG[::-1]] == pytest.approx(0.0, abs=1e-6)
     assert result["mean_geodesic_error"] == pytest.approx(0.0, abs=1e-6)
     assert ms["pairwise"]["mean_geodesic_error"] > 0.05  # the wrong pairs, matched directly
+    assert ms["pairwise"]["cost_error_spearman"] > 0.5  # the expensive pairs are the wrong ones
     assert ms["cycle_consistency"]["mean"] == pytest.approx(0.0, abs=1e-6)
     assert ms["cycle_consistency_pairwise"]["mean"] > 0.05
 
