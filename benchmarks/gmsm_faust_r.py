@@ -10,11 +10,11 @@
 1. ``train.py experiment=gmsm_faust_r_cpu`` (epochs of 400 training pairs, knn graph with K = 5 built after
    ``--burn-in-epoch`` epochs and every 2 after; the published network, layer and loss) for ``--max-time``, with a
    checkpoint every epoch, into ``RUN_DIR``;
-2. ``evaluate.py model=gmsm ckpt_path=RUN_DIR/checkpoints/last.ckpt data=faust_r``: the 380 ordered test pairs as
-   multi-shape matching (the full graph over the 20 test shapes, composed maps, cycle consistency), into
-   ``RUN_DIR/eval_graph``;
-3. the same with ``matching=pairwise`` (the direct maps of the same network), into ``RUN_DIR/eval_pairwise``;
-4. ``matching=pairwise`` on the checkpoint of the epoch at whose end the graph is first built (pairwise
+2. ``evaluate.py model=gmsm ckpt_path=RUN_DIR/checkpoints/last.ckpt multishape=graph data=faust_r``: the 380
+   ordered test pairs as multi-shape matching (the full graph over the 20 test shapes, composed maps, cycle
+   consistency), into ``RUN_DIR/eval_graph``;
+3. the same without ``multishape=graph`` (the direct maps of the same network), into ``RUN_DIR/eval_pairwise``;
+4. pairwise (no ``multishape=``) on the checkpoint of the epoch at whose end the graph is first built (pairwise
    DiffusionNet + Deep Shells training only, the same run up to that point), into ``RUN_DIR/eval_burn_in``.
 
 The ``pairwise`` baseline of the issue (``model.graph.enabled=false``, the same schedule) is the run up to the
@@ -70,7 +70,8 @@ def pairwise_baseline_command(run_dir: Path, data: list[str], max_time: str, bur
 
 def eval_command(run_dir: Path, data: list[str], name: str, ckpt: Path, matching: str) -> list[str]:
     out = run_dir / name
-    return [sys.executable, "evaluate.py", "model=gmsm", f"ckpt_path={ckpt}", f"matching={matching}", "data=faust_r",
+    graph = ["multishape=graph"] if matching == "graph" else []
+    return [sys.executable, "evaluate.py", "model=gmsm", f"ckpt_path={ckpt}", *graph, "data=faust_r",
             *data, f"output_dir={out}", f"hydra.run.dir={out}"]
 
 

@@ -17,7 +17,10 @@ Options: ``configs/evaluate.yaml``. Steps of ``task=match`` (the default):
    :mod:`shapecorr.data.operators`) are added to the data's operators.
 2. Fill the shape cache of the split, with the geodesic rows from every target's ground-truth points (rank 0,
    parallel, workers chosen from the estimated memory, progress bar).
-3. Evaluate this rank's shard of the pairs (:mod:`shapecorr.eval.protocol`): per-pair records, maps.
+3. Evaluate this rank's shard of the pairs (:mod:`shapecorr.eval.protocol`): per-pair records, maps. With
+   ``multishape=graph`` the model is first queried on the split's candidate pairs (sharded, resumable) and the
+   pairs get the maps composed through the shape graph (:class:`~shapecorr.eval.multi_shape.MultiShapeMatcher`,
+   docs/evaluation.md §7); ``metrics.json["multi_shape"]`` then reports cycle consistency.
 4. Rank 0 merges the records of all pairs into ``metrics.json``, ``per_pair.csv``, ``pck.png`` and renders
    ``examples/<x>__<y>.png``.
 
@@ -64,7 +67,6 @@ import platform
 import shutil
 import signal
 import sys
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -89,6 +91,7 @@ from shapecorr.cli.model_request import model_request
 from shapecorr.viz.interp_curves import INTERP_CURVES_PNG, write_interp_curves_png
 from shapecorr.viz.pck import write_pck_png
 from shapecorr.viz.render import render_correspondence
+from shapecorr.viz.shape_graph import write_shape_graph_png
 
 RUN_FILE = "run.json"
 EXAMPLES_DIR = "examples"
@@ -146,8 +149,9 @@ def build_matcher(cfg: DictConfig, device: torch.device):
         matcher = matcher.eval().to(device)
     if not isinstance(matcher, Matcher):
         raise ConfigError(f"{type(matcher).__name__} has no match(x, y) method; it cannot be evaluated")
-    # refine the map first (postprocess=), then interpolate the refined map (interpolator=)
-    return with_interpolator(cfg, apply_postprocess(cfg, matcher))
+    # refine the map first (postprocess=), compose the maps through the shape graph (multishape=), then interpolate
+    # the resulting map (interpolator=)
+    return with_interpolator(cfg, with_multishape(cfg, apply_postprocess(cfg, matcher)))
 
 
 def interpolator_config(cfg: DictConfig) -> DictConfig | None:
@@ -202,13 +206,42 @@ def apply_postprocess(cfg: DictConfig, matcher):
         return matcher
     if "_target_" not in post_cfg:
         raise ConfigError("the postprocess config has no _target_ (use postprocess=smooth_shells or postprocess=null)")
-    try:
-        wrapped = hydra.utils.instantiate(post_cfg, _convert_="object", _partial_=True)(matcher=matcher)
-    except hydra.errors.InstantiationException as err:
-        raise ConfigError(f"cannot build the postprocess step: {err}") from None
+    wrapped = _wrap(post_cfg, matcher, "the postprocess step")
     if not isinstance(wrapped, Matcher):
         raise ConfigError(f"{type(wrapped).__name__} has no match(x, y) method; it cannot post-process a matcher")
     return wrapped
+
+
+def with_multishape(cfg: DictConfig, matcher):
+    """``matcher`` wrapped in the ``multishape=`` group's :class:`~shapecorr.eval.multi_shape.MultiShapeMatcher`.
+
+    Itself without the group. The wrapper queries the split's pairs in :func:`evaluate` (``prepare``) before the
+    per-pair loop scores its composed maps (docs/evaluation.md §7).
+    """
+    node = cfg.get("multishape")
+    if node is None:
+        return matcher
+    if "_target_" not in node:
+        raise ConfigError("the multishape config has no _target_ (use multishape=graph or multishape=null)")
+    wrapped = _wrap(node, matcher, "the multishape wrapper")
+    if not isinstance(wrapped, multi_shape.MultiShapeMatcher):
+        raise ConfigError(f"multishape: {node._target_} is not a MultiShapeMatcher")
+    return wrapped
+
+
+def _wrap(node: DictConfig, matcher, what: str):
+    """A wrapper group's partial config (``_partial_: true``) called with ``matcher=matcher``."""
+    try:
+        return hydra.utils.instantiate(node, _convert_="object", _partial_=True)(matcher=matcher)
+    except hydra.errors.InstantiationException as err:
+        raise ConfigError(f"cannot build {what}: {err}") from None
+
+
+def multishape_of(matcher) -> multi_shape.MultiShapeMatcher | None:
+    """The multi-shape wrapper in a chain of wrappers (e.g. under ``interpolator=``), or None."""
+    while matcher is not None and not isinstance(matcher, multi_shape.MultiShapeMatcher):
+        matcher = getattr(matcher, "matcher", None)
+    return matcher
 
 
 def _matcher_name(matcher) -> str:
@@ -327,106 +360,6 @@ def task_option(cfg: DictConfig) -> str:
     return task
 
 
-#: Values of the ``matching`` option of graph matchers (model=gmsm).
-MATCHING_MODES = ("graph", "pairwise")
-
-
-def matching_option(cfg: DictConfig, matcher) -> str | None:
-    """The multi-shape matching mode of a run: ``cfg.matching`` for graph matchers, else None.
-
-    ``graph`` (default) or ``pairwise`` for matchers with ``graph_query`` (G-MSM); None for the others (the
-    option does not apply to them).
-    """
-    if not hasattr(matcher, "graph_query"):
-        return None
-    mode = str(cfg.get("matching") or "graph")
-    if mode not in MATCHING_MODES:
-        raise ConfigError(f"matching must be one of {MATCHING_MODES}, got {mode!r}")
-    return mode
-
-
-def graph_variant_option(cfg: DictConfig, matcher) -> str:
-    """The graph variant of a multi-shape evaluation: ``model.graph.variant`` of the config, else the matcher's."""
-    node = (cfg.get("model") or {}).get("graph") or {}
-    variant = node.get("variant") or getattr(getattr(matcher, "graph_options", None), "variant", "full")
-    return multi_shape.check_variant(str(variant))
-
-
-def evaluate_multi_shape(cfg: DictConfig, matcher, shapes, pairs, out_dir: Path, settings, fingerprint, rank: int,
-                         world: int, view) -> dict[str, Any] | None:
-    """Multi-shape matching over the split (``evaluate.py model=gmsm``, docs/gmsm.md §4).
-
-    1. Every ordered pair of the split's shapes (or the knn candidates) is queried with ``matcher.graph_query``,
-       sharded over the ranks (``OUT/graph_queries/<x>__<y>.npz``, resumable).
-    2. Rank 0 builds the shape graph from the costs, composes every pair's map along it and scores the evaluated
-       ``pairs`` with the usual per-pair protocol (records, maps, metrics.json, per_pair.csv, pck.png, examples).
-    3. ``metrics.json["multi_shape"]``: variant, shape / query / unreachable counts and ``cycle_consistency``
-       (composed maps) and ``cycle_consistency_pairwise`` (direct maps) over up to ``cfg.max_triplets`` (default
-       200) ordered triplets; ``OUT/shape_graph.png`` and ``OUT/shape_graph.npz``.
-    """
-    from shapecorr.eval.metrics import surface_area
-    from shapecorr.models.gmsm import save_graph
-    from shapecorr.viz.shape_graph import write_shape_graph_png
-
-    variant = graph_variant_option(cfg, matcher)
-    names = list(shapes.names)
-    descriptors = None
-    if variant == "knn":
-        descriptors = np.stack([multi_shape.shape_dna(shapes[i].evals) for i in range(len(names))])
-    knn_k = int(((cfg.get("model") or {}).get("graph") or {}).get("knn_k") or 5)
-    candidates = multi_shape.candidate_pairs(len(names), variant, knn_k, descriptors)
-    mine = protocol.shard_pairs(list(range(candidates.shape[0])), rank, world)
-    device = torch.device(settings.device)
-    multi_shape.query_pairs_cached(matcher, shapes, candidates[mine], out_dir, progress=bool(cfg.progress) and
-                                   rank == 0, device=device)
-    _barrier()
-    memory = _peak_memory()
-    if rank != 0:
-        return None
-    queries = multi_shape.query_pairs_cached(matcher, shapes, candidates, out_dir)  # all read back from files
-    collection = multi_shape.build_collection_graph(names, candidates, queries, variant)
-    composed = multi_shape.ComposedMatcher(collection, "graph")
-    records = protocol.evaluate_pairs(composed, shapes, pairs, out_dir, replace(settings, device="cpu"),
-                                      progress=bool(cfg.progress))
-    loaded = [protocol.load_record(out_dir, r.source, r.target) for r in records]
-    result = reports.aggregate(records, [e for _, e, _ in loaded], [s for _, _, s in loaded])
-    result.update(memory)
-    triplets = multi_shape.sample_triplets(len(names), int(cfg.get("max_triplets") or multi_shape.DEFAULT_MAX_TRIPLETS))
-
-    def geodesics(i):
-        return shapes.geodesics(i, method=settings.geodesics)
-
-    areas: dict[int, float] = {}
-
-    def sqrt_area(i: int) -> float:
-        if i not in areas:
-            shape = shapes.load_shape(i)
-            areas[i] = float(np.sqrt(surface_area(shape.verts.numpy(), shape.faces.numpy())))
-        return areas[i]
-
-    result["multi_shape"] = {
-        "variant": variant, "n_shapes": len(names), "n_queries": int(candidates.shape[0]),
-        "n_edges": int(collection.graph.edges.shape[0]), "unreachable_pairs": len(collection.unreachable),
-        "cycle_consistency": multi_shape.cycle_consistency(composed.maps(), triplets, geodesics, sqrt_area),
-        "cycle_consistency_pairwise": multi_shape.cycle_consistency(
-            multi_shape.ComposedMatcher(collection, "pairwise").maps(), triplets, geodesics, sqrt_area),
-    }
-    result["run"] = {**fingerprint, "device": str(device), "world_size": world,
-                     "date": datetime.datetime.now().isoformat(timespec="seconds"), "command": " ".join(sys.argv),
-                     "machine": platform.processor() or platform.machine(), "torch": torch.__version__}
-    save_graph(out_dir / "shape_graph.npz", collection, epoch=-1)
-    write_shape_graph_png(out_dir / "shape_graph.png", collection.graph, names)
-    reports.write_metrics_json(out_dir / "metrics.json", result)
-    reports.write_per_pair_csv(out_dir / "per_pair.csv", records)
-    write_pck_png(out_dir / "pck.png", result, label=f"G-MSM ({variant} graph)")
-    render_examples(out_dir, shapes, pairs, records, int(cfg.n_examples), view)
-    cc = result["multi_shape"]["cycle_consistency"]
-    print(reports.summary(result, out_dir))
-    if cc["mean"] is not None:
-        print(f"cycle consistency ({variant} graph): {cc['mean']:.4f} over {cc['n_triplets']} triplets", flush=True)
-    return result
-
-
 @exit_on_user_error
 def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     """Run the evaluation described by ``cfg`` (configs/evaluate.yaml); returns metrics on rank 0, else None.
@@ -481,13 +414,12 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
         fingerprint["postprocess"] = OmegaConf.to_container(cfg.postprocess, resolve=True)
     if protocol.interpolates(matcher):
         fingerprint["interp_times"] = None if settings.interp_times is None else list(settings.interp_times)
-    matching = matching_option(cfg, matcher)  # G-MSM: multi-shape matching over the split (new in issue 13)
-    if matching is not None:
-        fingerprint["matching"] = matching
-    if matching == "graph":  # refused before any query: every ordered pair is queried and scored on whole meshes
+    if cfg.get("multishape") is not None:
+        fingerprint["multishape"] = OmegaConf.to_container(cfg.multishape, resolve=True)
+        # refused before any query: every ordered pair is queried, composed and scored on whole meshes
         check_pair_names(((a, b) for a in shapes.names for b in shapes.names if a != b), shapes.root)
-        shapes.check_connected("multi-shape matching (matching=graph: cycle consistency over all-pairs geodesics)",
-                               "evaluate them with matching=pairwise, or remove the small pieces from the meshes")
+        shapes.check_connected("multi-shape matching (multishape=graph: maps composed over all ordered pairs)",
+                               "evaluate them without multishape=, or remove the small pieces from the meshes")
     if rank == 0:
         _check_run_file(out_dir, fingerprint, bool(cfg.resume))
         # Fill the cache of every shape of the split once, in parallel, before any pair is evaluated.
@@ -496,14 +428,16 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
                        progress=bool(cfg.progress))
     _barrier()
 
-    if matching == "graph":
-        return evaluate_multi_shape(cfg, matcher, shapes, pairs, out_dir, settings, fingerprint, rank, world, view)
+    graph = multishape_of(matcher)
     mine = protocol.shard_pairs(pairs, rank, world)
     names = [(shapes.names[i], shapes.names[j]) for i, j in pairs]
     done = protocol.count_done(out_dir, names)
     if rank == 0 and done and bool(cfg.resume):
         print(f"resuming: {done} of {len(pairs)} pairs done in {out_dir}", file=sys.stderr)
     try:
+        if graph is not None:  # query the split's pairs (sharded, resumable), then build the shape graph
+            graph.prepare(shapes, out_dir, len(pairs), rank, world, device=device,
+                          progress=bool(cfg.progress) and rank == 0, barrier=_barrier)
         protocol.evaluate_pairs(
             matcher,
             shapes,
@@ -538,13 +472,19 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
         "machine": platform.processor() or platform.machine(),
         "torch": torch.__version__,
     }
+    if graph is not None:
+        result["multi_shape"] = graph.report(shapes, pairs, settings.geodesics)
+        multi_shape.save_graph(out_dir / "shape_graph.npz", graph.collection, epoch=-1)
+        write_shape_graph_png(out_dir / "shape_graph.png", graph.collection.graph, list(shapes.names))
     reports.write_metrics_json(out_dir / "metrics.json", result)
     reports.write_per_pair_csv(out_dir / "per_pair.csv", records)
-    label = fingerprint["matcher"].rsplit(".", 1)[-1]
+    label = graph.label if graph is not None else fingerprint["matcher"].rsplit(".", 1)[-1]
     write_pck_png(out_dir / "pck.png", result, label=label)
     if reports.CURVES_KEY in result:
         write_interp_curves_png(out_dir / INTERP_CURVES_PNG, result, label=label)
     render_examples(out_dir, shapes, pairs, records, int(cfg.n_examples), view)
     summary = reports.summary(result, out_dir)
     print(summary)
+    if graph is not None:
+        print(multi_shape.summary_line(result["multi_shape"]), flush=True)
     return result

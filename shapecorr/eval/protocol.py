@@ -77,6 +77,9 @@ UNIT_TIME = 1.0
 #: ``MatchResult.extras`` key of a post-processed matcher's map before its refinement (scored as
 #: ``PairRecord.initial_mean_error``).
 INITIAL_MAP_KEY = "initial_p2p"
+#: ``MatchResult.extras`` key: seconds spent on the map before ``match`` (a multi-shape matcher's queries), added
+#: to the pair's ``seconds``.
+PRECOMPUTED_SECONDS_KEY = "precomputed_seconds"
 #: Two frame times closer than this are the same time (float32 tensors carry times to ~1e-7).
 TIME_ATOL = 1e-6
 START_METHODS = ("spawn", "forkserver", "fork")
@@ -633,7 +636,7 @@ class PairEvaluator:
         with torch.no_grad():
             run = run_matcher(self.matcher, xd, yd, self.settings.interp_times)
         _synchronize(self.device)
-        seconds = time.perf_counter() - t0
+        seconds = time.perf_counter() - t0 + float(run.result.extras.get(PRECOMPUTED_SECONDS_KEY, 0.0))
         result = run.result.cpu().validate(x.shape.n_verts, y.shape.n_verts, name)
         run = replace(run, result=result)
         scores = score_map(result.p2p, x, y, self.geodesics(j), self.settings.conformal_clamp)

@@ -5,7 +5,7 @@ Priors", CVPR 2023 (docs/gmsm.md). :class:`GMSM` is :class:`~shapecorr.models.de
 backbone injected, ``configs/model/backbone/diffusion_net.yaml`` by default) with:
 
 - :meth:`GMSM.graph_query`: the fast one-level query of a pair (a seeded 2000-vertex sample and the training
-  layer, then :func:`~shapecorr.matching.deep_shells.one_level_query` at full resolution), giving both maps and
+  layer, then :func:`~shapecorr.matching.gmsm_query.one_level_query` at full resolution), giving both maps and
   the alignment cost; ``match`` returns its maps (G-MSM's test protocol; ``test_query="deep_shells"`` gives the
   Deep Shells test pipeline instead);
 - the graph term of the loss (``model.loss.terms.graph``, :func:`~shapecorr.losses.shells.graph_alignment_loss`,
@@ -26,7 +26,6 @@ training mode, as the original code does (docs/gmsm.md §6).
 from __future__ import annotations
 
 import contextlib
-import os
 import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -38,27 +37,22 @@ import pytorch_lightning as pl
 import torch
 from pytorch_lightning.callbacks import Timer
 
-from shapecorr.data.cache import atomic_open
 from shapecorr.data.operators import merge_requests
 from shapecorr.errors import ConfigError
 from shapecorr.eval.multi_shape import (
+    PAIR_COST_KEY,
     CollectionGraph,
     GraphQuery,
     build_collection_graph,
-    candidate_pairs,
     check_variant,
+    collection_candidates,
+    load_graph,
     query_pairs,
-    shape_dna,
+    save_graph,
 )
 from shapecorr.eval.protocol import shard_pairs
-from shapecorr.matching.deep_shells import (
-    deep_shells_layer,
-    full_resolution_shells,
-    one_level_query,
-    random_samples,
-    shell_size,
-    two_sided_alignment_cost,
-)
+from shapecorr.matching.deep_shells import deep_shells_layer, random_samples, shell_size
+from shapecorr.matching.gmsm_query import full_resolution_shells, one_level_query, two_sided_alignment_cost
 from shapecorr.matching.result import MatchResult
 from shapecorr.models.deep_shells import DeepShells
 
@@ -105,47 +99,6 @@ class GraphOptions:
     def builds_at(self, epoch: int) -> bool:
         """Whether the graph is (re)built at the end of 0-based epoch ``epoch``."""
         return self.enabled and epoch >= self.burn_in and epoch % self.update_every == 0
-
-
-# -- persistence -------------------------------------------------------------------------------------------
-
-def save_graph(path: str | os.PathLike, graph: CollectionGraph, epoch: int) -> Path:
-    """Write names, costs, variant, build epoch and the composed maps to ``path`` (.npz, atomic replace)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    keys = sorted(graph.composed)
-    maps = [graph.composed[k].astype(np.int32) for k in keys]
-    offsets = np.cumsum([0] + [m.shape[0] for m in maps]).astype(np.int64)
-    with atomic_open(path) as fh:
-        np.savez(fh, names=np.array(graph.names, dtype=str), costs=graph.graph.costs, pairs=graph.pairs,
-                 variant=np.array(graph.variant), epoch=np.array(int(epoch)),
-                 map_keys=np.array(keys, dtype=np.int64).reshape(-1, 2), map_offsets=offsets,
-                 map_values=np.concatenate(maps) if maps else np.zeros(0, np.int32))
-    return path
-
-
-@dataclass
-class StoredGraph:
-    """A persisted graph: ``names``, ``costs (n, n)``, ``variant``, ``epoch`` and ``composed[(s, t)] (n_s,)``."""
-
-    names: list
-    costs: np.ndarray
-    variant: str
-    epoch: int
-    composed: dict
-
-
-def load_graph(path: str | os.PathLike) -> StoredGraph:
-    """Read a graph written by :func:`save_graph`."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            keys, offsets, values = z["map_keys"], z["map_offsets"], z["map_values"]
-            composed = {(int(s), int(t)): values[offsets[k]:offsets[k + 1]].astype(np.int64)
-                        for k, (s, t) in enumerate(keys.tolist())}
-            return StoredGraph(names=[str(n) for n in z["names"]], costs=z["costs"], variant=str(z["variant"]),
-                               epoch=int(z["epoch"]), composed=composed)
-    except (OSError, KeyError, ValueError) as err:
-        raise ConfigError(f"unreadable shape graph file ({err}); delete it to rebuild the graph", path=path) from None
 
 
 class PseudoMaps:
@@ -250,7 +203,7 @@ class GMSM(DeepShells):
         if self.test_query == "deep_shells":
             return super().match(x, y)
         q = self.graph_query(x, y)
-        return MatchResult(p2p=q.map_x_to_y, p2p_inv=q.map_y_to_x)
+        return MatchResult(p2p=q.map_x_to_y, p2p_inv=q.map_y_to_x, extras={PAIR_COST_KEY: q.cost})
 
     # -- the graph term --------------------------------------------------------------------------------------
     def graph_alignment(self, x, y, tau: torch.Tensor, pi_xy: torch.Tensor, pi_yx: torch.Tensor) -> torch.Tensor:
@@ -318,13 +271,10 @@ class ShapeGraphCallback(pl.Callback):
         opts = module.graph_options
         shapes = self._shapes(trainer)
         names = list(shapes.names)
-        descriptors = None
-        if opts.variant == "knn":
-            descriptors = np.stack([shape_dna(shapes[i].evals) for i in range(len(names))])
-        pairs = candidate_pairs(len(names), opts.variant, opts.knn_k, descriptors)
+        pairs = collection_candidates(shapes, opts.variant, opts.knn_k)
         rank, world = trainer.global_rank, trainer.world_size
         mine = shard_pairs(list(range(pairs.shape[0])), rank, world)
-        results = query_pairs(module, shapes, pairs[mine], progress=opts.progress and rank == 0,
+        results = query_pairs(module.graph_query, shapes, pairs[mine], progress=opts.progress and rank == 0,
                               device=module.device, desc=f"shape graph (epoch {epoch})")
         self.n_queries += len(mine)
         gathered = _gather(list(zip(mine, results)), trainer)

@@ -1,7 +1,7 @@
 """Drawing of a G-MSM shape graph (docs/gmsm.md §4): shapes as nodes, the graph's edges shaded by weight.
 
     fig = shape_graph_figure(graph, names)          # matplotlib Figure
-    write_shape_graph_png(path, graph, names)       # evaluate.py model=gmsm: OUT/shape_graph.png
+    write_shape_graph_png(path, graph, names)       # evaluate.py multishape=graph: OUT/shape_graph.png
     log_shape_graph(logger, graph, names, step)     # TensorBoard image "graph/shape_graph"
 
 The layout is networkx's spring layout of the edges with weight-dependent lengths (seeded, so the same graph

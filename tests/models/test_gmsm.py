@@ -28,7 +28,7 @@ from shapecorr.geometry.diffusion_operators import GRADIENT_RIDGE, diffusion_gra
 from shapecorr.geometry.laplace_beltrami import eigenbasis
 from shapecorr.losses.shells import graph_alignment_loss, level_energy_loss
 from shapecorr.losses.weighted import WeightedLoss
-from shapecorr.matching.deep_shells import full_resolution_shells
+from shapecorr.matching.gmsm_query import full_resolution_shells
 from shapecorr.models.deep_shells import DeepShells
 from shapecorr.models.schedules import LossWeightSchedule
 from shapecorr.models.gmsm import (
@@ -287,17 +287,18 @@ def test_evaluate_gmsm_writes_multi_shape_metrics(tmp_path, compose_config):
              "model.backbone.n_blocks=1", "model.num_samples=80", "model.layer.k_array=[6,10,14]"]
     base = ["model=gmsm", "data=folder", f"data.root={tmp_path / 'data'}", f"paths.cache_dir={tmp_path / 'cache'}",
             "progress=false", "n_examples=1", "data.operators.n_eig=40", *small]
-    result = evaluate(compose_config("evaluate", overrides=[*base, f"output_dir={tmp_path / 'graph'}"]))
+    result = evaluate(compose_config("evaluate", overrides=[*base, "multishape=graph",
+                                                            f"output_dir={tmp_path / 'graph'}"]))
     ms = result["multi_shape"]
     assert ms["n_shapes"] == 4 and ms["n_queries"] == 12 and ms["unreachable_pairs"] == 0
+    assert ms["cost"] == "matcher" and result["seconds_per_pair"] > 0  # G-MSM's own alignment cost
     for key in ("cycle_consistency", "cycle_consistency_pairwise"):
         assert ms[key]["n_triplets"] == 24 and 0 <= ms[key]["mean"] < 1
     saved = json.loads((tmp_path / "graph" / "metrics.json").read_text())
     assert saved["multi_shape"]["variant"] == "full" and saved["n_pairs"] == 12
     assert (tmp_path / "graph" / "shape_graph.png").stat().st_size > 0
     assert len(list((tmp_path / "graph" / "graph_queries").glob("*.npz"))) == 12
-    direct = evaluate(compose_config("evaluate", overrides=[*base, "matching=pairwise",
-                                                            f"output_dir={tmp_path / 'pairwise'}"]))
+    direct = evaluate(compose_config("evaluate", overrides=[*base, f"output_dir={tmp_path / 'pairwise'}"]))
     assert "multi_shape" not in direct and direct["n_pairs"] == 12
 
 
@@ -314,4 +315,4 @@ def test_configs_pairwise_and_gmsm_compose(compose_config):
     assert published.model.graph.burn_in == 100 and published.model.graph.update_every == 20
     assert published.model.loss.terms.graph.weight == 0.5 and published.model.num_samples == 2000
     assert published.model.layer == compose_config("evaluate", ["model=deep_shells"]).model.layer  # inherited
-    assert compose_config("evaluate", ["model=gmsm", "matching=pairwise"]).matching == "pairwise"
+    assert compose_config("evaluate", ["model=gmsm", "multishape=graph"]).multishape.variant == "full"
