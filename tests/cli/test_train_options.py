@@ -112,7 +112,9 @@ def test_a_model_without_parameters_is_refused_before_any_data_work(tmp_path, ca
     assert not (tmp_path / "cache" / "synthetic").exists()
 
 
-def test_logger_none_disables_logging_but_keeps_checkpoints(tmp_path, _cfg):
+def test_logger_none_disables_logging_but_keeps_checkpoints(tmp_path, _cfg, monkeypatch):
+    # on a terminal: no plain-progress callback either (tests/cli/test_run_log.py covers that one)
+    monkeypatch.setattr("shapecorr.cli.train.stdout_is_terminal", lambda: True)
     for option in ("logger=none", "~logger"):
         cfg = _cfg(tmp_path, option)
         assert not cfg.get("logger")
