@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.geometry import divergence_free as df
@@ -105,6 +106,76 @@ def knn_graph_edges(points: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.T
             torch.from_numpy(counts.astype(np.float32)).to(points.device))
 
 
+#: Pre-alignment modes (docs/divfree.md §1): none; the published PCA pre-alignment (4 orientations of x's principal
+#: frame onto y's); the same with the 4 quarter turns about the first principal axis for each of the two senses of
+#: that axis (8 orientations: also covers shapes whose second and third principal axes are swapped).
+PREALIGN_MODES = ("none", "pca", "pca_turns")
+
+
+def principal_frame(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Vertex mean and principal axes of a point set.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+
+    Returns
+    -------
+    mean : (3,) float64
+    axes : (3, 3) float64
+        Columns: the principal axes by decreasing variance, a right-handed frame (determinant +1).
+    """
+    p = points.detach().to(torch.float64)
+    mean = p.mean(0)
+    centred = p - mean
+    _, vecs = torch.linalg.eigh(centred.T @ centred / max(p.shape[0], 1))  # ascending eigenvalues
+    axes = vecs.flip(1)
+    if float(torch.linalg.det(axes)) < 0:
+        axes[:, 2] = -axes[:, 2]
+    return mean, axes
+
+
+def orientation_candidates(points_x: torch.Tensor, points_y: torch.Tensor, mode: str = "pca") -> torch.Tensor:
+    """Rotations that turn x's principal frame onto y's, one per candidate orientation.
+
+    ``pca``: the 4 proper rotations ``A_y S A_x^T`` with ``S = diag(+-1, +-1, +-1)``, ``det S = 1`` (the sign of
+    each principal axis is arbitrary). ``pca_turns``: ``A_y T A_x^T`` for the 8 proper ``T`` that keep the first
+    axis up to its sign: the 4 quarter turns about it, for either sense (contains the 4 of ``pca``).
+
+    Parameters
+    ----------
+    points_x : (n, 3) float
+    points_y : (m, 3) float
+    mode : {"pca", "pca_turns"}
+
+    Returns
+    -------
+    (C, 3, 3) float64
+        Rotations ``R`` (``det R = 1``) to apply to x's points centred on their mean.
+    """
+    if mode not in PREALIGN_MODES[1:]:
+        raise ConfigError(f"divfree: orientation candidates need mode in {PREALIGN_MODES[1:]}, got {mode!r}")
+    _, ax = principal_frame(points_x)
+    _, ay = principal_frame(points_y)
+    if mode == "pca":
+        signs = [(1.0, 1.0, 1.0), (1.0, -1.0, -1.0), (-1.0, 1.0, -1.0), (-1.0, -1.0, 1.0)]
+        mids = [torch.diag(torch.tensor(s, dtype=torch.float64)) for s in signs]
+    else:
+        mids = []
+        for first in (1.0, -1.0):
+            flip = torch.diag(torch.tensor([first, first, 1.0], dtype=torch.float64))  # det +1
+            for c, s in ((1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0)):  # quarter turns about the first axis
+                turn = torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=torch.float64)
+                mids.append(flip @ turn)
+    return torch.stack([ay @ m @ ax.T for m in mids])
+
+
+def fractional_rotation(rotation: torch.Tensor, fraction: float) -> torch.Tensor:
+    """``R^s``: the rotation about the same axis by ``s`` times the angle of ``rotation (3, 3)`` (float64)."""
+    vec = Rotation.from_matrix(rotation.detach().cpu().double().numpy()).as_rotvec()
+    return torch.from_numpy(Rotation.from_rotvec(fraction * vec).as_matrix()).to(rotation)
+
+
 class DivFreeMatcher:
     """Divergence-free deformation matcher (module docstring; parameters in configs/model/divfree.yaml).
 
@@ -146,6 +217,9 @@ class DivFreeMatcher:
         Nearest-neighbour search (:func:`shapecorr.matching.nearest_neighbors.bidirectional_nearest_neighbors`).
     nn_workers : int
         Threads of the kd-tree search (1: single-threaded).
+    prealign : {"none", "pca", "pca_turns"}
+        Rigid pre-alignment (docs/divfree.md §1): x turned about its vertex mean by each candidate of
+        :func:`orientation_candidates`, the first level run from each, the lowest energy kept; ``none``: x as given.
     """
 
     needs_ground_truth = False
@@ -171,6 +245,7 @@ class DivFreeMatcher:
         seed: int = 0,
         nn_backend: str = "auto",
         nn_workers: int = 1,
+        prealign: str = "pca_turns",
     ):
         modes = [int(m) for m in (modes if isinstance(modes, (list, tuple)) else [modes])]
         n = len(modes)
@@ -187,6 +262,8 @@ class DivFreeMatcher:
             raise ConfigError("divfree: product-space weights must be non-negative")
         if rule not in df.FLOW_RULES:
             raise ConfigError(f"divfree: rule must be one of {df.FLOW_RULES}, got {rule!r}")
+        if prealign not in PREALIGN_MODES:
+            raise ConfigError(f"divfree: prealign must be one of {PREALIGN_MODES}, got {prealign!r}")
         if convention not in df.CONVENTIONS:
             raise ConfigError(f"divfree: convention must be one of {df.CONVENTIONS}, got {convention!r}")
         for name, value in (("n_steps", n_steps), ("knn", knn), ("corr_every", corr_every), ("chunk_size", chunk_size)):
@@ -208,6 +285,7 @@ class DivFreeMatcher:
         self.seed = int(seed)
         self.nn_backend = nn_backend
         self.nn_workers = int(nn_workers)
+        self.prealign = prealign
         uses_descriptor = any(level.descriptor_weight > 0 for level in self.levels)
         self.required_operators = {DESCRIPTOR: {}} if uses_descriptor else {}
 
@@ -252,28 +330,10 @@ class DivFreeMatcher:
     # ------------------------------------------------------------------------------------------------------
     # optimization
     # ------------------------------------------------------------------------------------------------------
-    def fit(self, x, y) -> dict:
-        """Optimize the field flowing x onto y.
-
-        Parameters
-        ----------
-        x, y : ShapeSample
-
-        Returns
-        -------
-        dict with ``coeffs (3 K^3,)`` (finest level), the box transforms ``box_x``, ``box_y``, the energies of
-        the last iteration, and ``seconds``.
-        """
-        start = time.perf_counter()
-        vx = x.verts.detach().to(torch.float32)
-        vy = y.verts.detach().to(device=vx.device, dtype=torch.float32)
+    def _pair_state(self, vx: torch.Tensor, vy: torch.Tensor, fy: torch.Tensor) -> dict:
+        """Box transforms, box coordinates, y's normals and the FPS orders of one placement of x."""
         box_x, box_y = df.box_normalization(vx, vy, self.margin)
         bx, by = box_x.to_box(vx), box_y.to_box(vy)
-        fx, fy = x.faces.to(vx.device), y.faces.to(vx.device)
-        ny = vertex_normals(by, fy)
-        dx, dy = self._descriptor(x), self._descriptor(y)
-        dx = None if dx is None else dx.to(vx.device)
-        dy = None if dy is None else dy.to(vx.device)
         n_max = max(level.n_samples for level in self.levels)
         rng = np.random.default_rng(self.seed)
         # FPS orderings: every prefix is itself a farthest-point sample, so each level takes a prefix.
@@ -281,43 +341,117 @@ class DivFreeMatcher:
                                                            start=int(rng.integers(bx.shape[0])))).to(vx.device)
         order_y = torch.from_numpy(farthest_point_sampling(by.cpu(), min(n_max, by.shape[0]),
                                                            start=int(rng.integers(by.shape[0])))).to(vx.device)
-        coeffs = torch.zeros(df.n_fields(self.levels[0].n_modes), device=vx.device)
-        energies, history = {}, []
-        for i_level, level in enumerate(self.levels):
-            coeffs = df.resize_coefficients(coeffs.detach(), level.n_modes).requires_grad_(True)
-            sx, sy = order_x[:level.n_samples], order_y[:level.n_samples]
-            xs = bx[sx]
-            edges, counts = knn_graph_edges(xs, min(self.knn, xs.shape[0] - 1))
-            optimizer = torch.optim.Adam([coeffs], lr=level.lr)
-            emb_y_all = self._embed(by, ny, dy, level)
-            emb_y_s = emb_y_all[sy]
-            for it in range(level.iterations):
-                if it % self.corr_every == 0:
-                    with torch.no_grad():
-                        moved = self._flow(bx, coeffs.detach())
-                        emb_x_all = self._embed(moved, vertex_normals(moved, fx), dx, level)
-                        match_xy, _ = self._nn(emb_x_all[sx], emb_y_all)  # samples of x -> vertices of y
-                        match_yx, _ = self._nn(emb_y_s, emb_x_all[sx])  # samples of y -> samples of x
-                    target_xy, target_yx = by[match_xy], by[sy]
-                optimizer.zero_grad(set_to_none=True)
-                path = self._flow(xs, coeffs, return_path=True)  # (N + 1, m, 3)
-                end = path[-1]
-                e_align = 0.5 * (self._huber_mse(end - target_xy) + self._huber_mse(end[match_yx] - target_yx))
-                e_reg = arap_energy(path[:1].expand_as(path[1:]), path[1:], edges, counts, mode="average").sum()
-                e_reg = e_reg / (xs.shape[0] * self.n_steps * ARAP_NORMALIZATION / self.knn)
-                loss = e_align + self.lambda_reg * e_reg
-                if not bool(torch.isfinite(loss.detach())):
-                    raise NumericalError(
-                        f"divfree: the energy became non-finite on pair ({x.name}, {y.name}); lower model.lr"
-                    )
-                loss.backward()
-                optimizer.step()
-                energies = {"align": float(e_align.detach()), "reg": float(e_reg.detach())}
-                if it % self.corr_every == 0:
-                    history.append((i_level, it, energies["align"], energies["reg"]))
-        return {"coeffs": coeffs.detach(), "box_x": box_x, "box_y": box_y, "energies": energies, "history": history,
-                "seconds": time.perf_counter() - start, "box_verts": (bx, by), "normals_y": ny,
-                "descriptors": (dx, dy)}
+        return {"box_x": box_x, "box_y": box_y, "bx": bx, "by": by, "ny": vertex_normals(by, fy),
+                "order_x": order_x, "order_y": order_y}
+
+    def _correspondences(self, st: dict, level: Level, coeffs: torch.Tensor, fx, dx, dy) -> tuple:
+        """Product-space pairs of the current field: samples of x -> vertices of y, samples of y -> samples of x."""
+        sx, sy = st["order_x"][:level.n_samples], st["order_y"][:level.n_samples]
+        with torch.no_grad():
+            emb_y_all = self._embed(st["by"], st["ny"], dy, level)
+            moved = self._flow(st["bx"], coeffs.detach())
+            emb_x_all = self._embed(moved, vertex_normals(moved, fx), dx, level)
+            match_xy, _ = self._nn(emb_x_all[sx], emb_y_all)
+            match_yx, _ = self._nn(emb_y_all[sy], emb_x_all[sx])
+        return match_xy, match_yx
+
+    def _energy(self, st: dict, level: Level, coeffs: torch.Tensor, pairs: tuple, graph: tuple):
+        """``(E_align, E_reg)`` of ``coeffs`` for fixed pairs (differentiable in ``coeffs``)."""
+        match_xy, match_yx = pairs
+        xs = st["bx"][st["order_x"][:level.n_samples]]
+        by, sy = st["by"], st["order_y"][:level.n_samples]
+        path = self._flow(xs, coeffs, return_path=True)  # (N + 1, m, 3)
+        end = path[-1]
+        e_align = 0.5 * (self._huber_mse(end - by[match_xy]) + self._huber_mse(end[match_yx] - by[sy]))
+        e_reg = arap_energy(path[:1].expand_as(path[1:]), path[1:], *graph, mode="average").sum()
+        return e_align, e_reg / (xs.shape[0] * self.n_steps * ARAP_NORMALIZATION / self.knn)
+
+    def _run_level(self, st: dict, i_level: int, coeffs: torch.Tensor, fx, dx, dy, names: str) -> tuple:
+        """Adam on one level from ``coeffs`` (resized to the level's modes).
+
+        Returns the coefficients, the last energies and the energy history ``(level, iteration, align, reg)`` at
+        every correspondence update.
+        """
+        level = self.levels[i_level]
+        coeffs = df.resize_coefficients(coeffs.detach(), level.n_modes).requires_grad_(True)
+        xs = st["bx"][st["order_x"][:level.n_samples]]
+        graph = knn_graph_edges(xs, min(self.knn, xs.shape[0] - 1))
+        optimizer = torch.optim.Adam([coeffs], lr=level.lr)
+        energies, history, pairs = {}, [], None
+        for it in range(level.iterations):
+            if it % self.corr_every == 0:
+                pairs = self._correspondences(st, level, coeffs, fx, dx, dy)
+            optimizer.zero_grad(set_to_none=True)
+            e_align, e_reg = self._energy(st, level, coeffs, pairs, graph)
+            loss = e_align + self.lambda_reg * e_reg
+            if not bool(torch.isfinite(loss.detach())):
+                raise NumericalError(f"divfree: the energy became non-finite on pair ({names}); lower model.lr")
+            loss.backward()
+            optimizer.step()
+            energies = {"align": float(e_align.detach()), "reg": float(e_reg.detach())}
+            if it % self.corr_every == 0:
+                history.append((i_level, it, energies["align"], energies["reg"]))
+        return coeffs.detach(), energies, history
+
+    def _score(self, st: dict, coeffs: torch.Tensor, fx, dx, dy) -> float:
+        """The energy ``E_align + lambda_reg E_reg`` of the first level's field, with fresh correspondences."""
+        level = self.levels[0]
+        xs = st["bx"][st["order_x"][:level.n_samples]]
+        graph = knn_graph_edges(xs, min(self.knn, xs.shape[0] - 1))
+        with torch.no_grad():
+            pairs = self._correspondences(st, level, coeffs, fx, dx, dy)
+            e_align, e_reg = self._energy(st, level, coeffs, pairs, graph)
+        return float(e_align + self.lambda_reg * e_reg)
+
+    def fit(self, x, y) -> dict:
+        """Optimize the field flowing x onto y (after the pre-alignment, docs/divfree.md §1).
+
+        With ``prealign`` on, x is turned about its vertex mean by each candidate rotation
+        (:func:`orientation_candidates`), the first level is run from each, and the candidate of the lowest energy
+        (:meth:`_score`) continues through the remaining levels.
+
+        Parameters
+        ----------
+        x, y : ShapeSample
+
+        Returns
+        -------
+        dict with ``coeffs (3 K^3,)`` (finest level), the box transforms ``box_x``, ``box_y`` (x's of its turned
+        placement), ``rotation (3, 3)`` float64 and ``mean_x (3,)`` (x was turned by ``rotation`` about
+        ``mean_x``), the candidates' ``prealign_scores``, the energies of the last iteration, and ``seconds``.
+        """
+        start = time.perf_counter()
+        vx = x.verts.detach().to(torch.float32)
+        vy = y.verts.detach().to(device=vx.device, dtype=torch.float32)
+        fx, fy = x.faces.to(vx.device), y.faces.to(vx.device)
+        dx, dy = self._descriptor(x), self._descriptor(y)
+        dx = None if dx is None else dx.to(vx.device)
+        dy = None if dy is None else dy.to(vx.device)
+        names = f"{x.name}, {y.name}"
+        mean_x = vx.to(torch.float64).mean(0)
+        if self.prealign == "none":
+            rotations = torch.eye(3, dtype=torch.float64)[None]
+        else:
+            rotations = orientation_candidates(vx, vy, self.prealign)
+        start_coeffs = torch.zeros(df.n_fields(self.levels[0].n_modes), device=vx.device)
+        runs = []
+        for rot in rotations:
+            placed = vx if self.prealign == "none" else (
+                (vx.to(torch.float64) - mean_x) @ rot.T + mean_x).to(torch.float32)
+            st = self._pair_state(placed, vy, fy)
+            coeffs, energies, history = self._run_level(st, 0, start_coeffs, fx, dx, dy, names)
+            score = self._score(st, coeffs, fx, dx, dy) if len(rotations) > 1 else float("nan")
+            runs.append((score, st, coeffs, energies, history))
+        best = int(np.argmin([r[0] for r in runs])) if len(runs) > 1 else 0
+        _, st, coeffs, energies, history = runs[best]
+        for i_level in range(1, len(self.levels)):
+            coeffs, level_energies, level_history = self._run_level(st, i_level, coeffs, fx, dx, dy, names)
+            energies = level_energies or energies
+            history += level_history
+        return {"coeffs": coeffs, "box_x": st["box_x"], "box_y": st["box_y"], "energies": energies,
+                "history": history, "seconds": time.perf_counter() - start, "box_verts": (st["bx"], st["by"]),
+                "normals_y": st["ny"], "descriptors": (dx, dy), "rotation": rotations[best].to(vx.device),
+                "mean_x": mean_x.to(vx.device), "prealign_scores": [r[0] for r in runs]}
 
     def _maps(self, fit: dict, x, y) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Full-resolution deformed x (box units) and the product-space maps x -> y, y -> x."""
@@ -341,7 +475,19 @@ class DivFreeMatcher:
         box_x, box_y = fit["box_x"], fit["box_y"]
         shift = (box_y.center - box_x.center).to(frames)
         t = times.to(frames).reshape(-1, 1, 1)
-        return box_x.from_box(frames) + t * shift
+        frames = box_x.from_box(frames) + t * shift
+        rotation = fit["rotation"]
+        if self.prealign == "none" or bool(torch.equal(rotation, torch.eye(3, dtype=rotation.dtype,
+                                                                             device=rotation.device))):
+            return frames
+        # Undo the remaining part of the pre-alignment: frame t is turned by R^(t - 1) about its vertex mean, so
+        # t = 0 is x as given and t = 1 is the flowed x in y's frame (a rotation: volume and angles unchanged).
+        out = []
+        for frame, tk in zip(frames, times.tolist()):
+            turn = fractional_rotation(rotation, tk - 1.0).to(frame)
+            centre = frame.mean(0)
+            out.append((frame - centre) @ turn.T + centre)
+        return torch.stack(out)
 
     def interpolate(self, x, y, times) -> MatchResult:
         """Maps x -> y, y -> x and the deformation of x at ``times (T,)`` (any finite values)."""
@@ -354,7 +500,8 @@ class DivFreeMatcher:
             moved, p2p, p2p_inv = self._maps(fit, x, y)
             frames = self._frames(fit, x, times.to(moved.device))
         extras = {"coeffs": fit["coeffs"].cpu(), "energies": fit["energies"], "history": fit["history"],
-                  "fit_seconds": fit["seconds"]}
+                  "fit_seconds": fit["seconds"], "prealign_rotation": fit["rotation"].cpu(),
+                  "prealign_scores": fit["prealign_scores"]}
         return MatchResult(p2p=p2p, p2p_inv=p2p_inv, deformation=frames.to(x.verts.dtype),
                            times=times.to(frames.device), extras=extras)
 
