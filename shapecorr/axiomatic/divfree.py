@@ -41,7 +41,7 @@ from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.geometry import divergence_free as df
 from shapecorr.geometry.normals import vertex_normals
 from shapecorr.geometry.sampling import farthest_point_sampling
-from shapecorr.losses.arap import arap_energy
+from shapecorr.losses.arap import arap_energy, rotations_from_covariances
 from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
 from shapecorr.matching.result import MatchResult
 
@@ -108,8 +108,9 @@ def knn_graph_edges(points: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.T
 
 #: Pre-alignment modes (docs/divfree.md §1): none; the published PCA pre-alignment (4 orientations of x's principal
 #: frame onto y's); the same with the 4 quarter turns about the first principal axis for each of the two senses of
-#: that axis (8 orientations: also covers shapes whose second and third principal axes are swapped).
-PREALIGN_MODES = ("none", "pca", "pca_turns")
+#: that axis (8 orientations: also covers shapes whose second and third principal axes are swapped); the rigid stage
+#: of Smooth Shells (spectral axis, axis ICP, candidate turns scored by short non-rigid runs; docs/smooth_shells.md).
+PREALIGN_MODES = ("none", "pca", "pca_turns", "smooth_shells")
 
 
 def principal_frame(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -174,6 +175,58 @@ def fractional_rotation(rotation: torch.Tensor, fraction: float) -> torch.Tensor
     """``R^s``: the rotation about the same axis by ``s`` times the angle of ``rotation (3, 3)`` (float64)."""
     vec = Rotation.from_matrix(rotation.detach().cpu().double().numpy()).as_rotvec()
     return torch.from_numpy(Rotation.from_rotvec(fraction * vec).as_matrix()).to(rotation)
+
+
+def rigid_icp(points_x: torch.Tensor, normals_x: torch.Tensor, points_y: torch.Tensor, normals_y: torch.Tensor,
+              iterations: int = 30, normal_weight: float = 0.0, features_x: torch.Tensor | None = None,
+              features_y: torch.Tensor | None = None, backend: str = "auto",
+              workers: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rigid ICP of x onto y with pairs in both directions, in the product space ``[xyz, w_n normals, features]``.
+
+    Each iteration pairs every point of x with its nearest point of y and every point of y with its nearest point
+    of x (:func:`shapecorr.matching.nearest_neighbors.bidirectional_nearest_neighbors`), then fits the rotation and
+    translation of all pairs by least squares (Procrustes, :func:`shapecorr.losses.arap.rotations_from_covariances`).
+
+    Parameters
+    ----------
+    points_x, normals_x : (n, 3) float
+    points_y, normals_y : (m, 3) float
+    iterations : int
+    normal_weight : float
+        Weight of the normals against the coordinates (in the units of the points).
+    features_x, features_y : (n, c), (m, c) float, optional
+        Rotation-invariant descriptors, already weighted (e.g. SHOT): they pair points by what they look like,
+        so that ICP is drawn to the intrinsically right pose.
+    backend, workers
+        Nearest-neighbour search options.
+
+    Returns
+    -------
+    rotation : (3, 3) float64
+    translation : (3,) float64
+        ``rotation @ p + translation`` moves x onto y.
+    """
+    px, nx = points_x.detach().to(torch.float64), normals_x.detach().to(torch.float64)
+    py, ny = points_y.detach().to(torch.float64), normals_y.detach().to(torch.float64)
+    rot = torch.eye(3, dtype=torch.float64, device=px.device)
+    trans = py.mean(0) - px.mean(0)
+    extra_x = [] if features_x is None else [features_x.detach().to(torch.float64)]
+    extra_y = [] if features_y is None else [features_y.detach().to(torch.float64)]
+    emb_y = torch.cat([py, normal_weight * ny, *extra_y], dim=1).to(torch.float32)
+    for _ in range(iterations):
+        moved, turned = px @ rot.T + trans, nx @ rot.T
+        emb_x = torch.cat([moved, normal_weight * turned, *extra_x], dim=1).to(torch.float32)
+        nn_y, nn_x = bidirectional_nearest_neighbors(emb_x, emb_y, backend=backend, workers=workers)
+        src = torch.cat([px, px[nn_x]])
+        dst = torch.cat([py[nn_y], py])
+        cs, cd = src.mean(0), dst.mean(0)
+        new_rot = rotations_from_covariances((dst - cd).T @ (src - cs))
+        new_trans = cd - new_rot @ cs
+        done = bool(torch.allclose(new_rot, rot, atol=1e-10) and torch.allclose(new_trans, trans, atol=1e-10))
+        rot, trans = new_rot, new_trans
+        if done:
+            break
+    return rot, trans
 
 
 class DivFreeMatcher:
@@ -246,6 +299,7 @@ class DivFreeMatcher:
         nn_backend: str = "auto",
         nn_workers: int = 1,
         prealign: str = "pca_turns",
+        prealign_icp_iterations: int = 30,
     ):
         modes = [int(m) for m in (modes if isinstance(modes, (list, tuple)) else [modes])]
         n = len(modes)
@@ -286,8 +340,13 @@ class DivFreeMatcher:
         self.nn_backend = nn_backend
         self.nn_workers = int(nn_workers)
         self.prealign = prealign
+        self.prealign_icp_iterations = int(prealign_icp_iterations)
         uses_descriptor = any(level.descriptor_weight > 0 for level in self.levels)
-        self.required_operators = {DESCRIPTOR: {}} if uses_descriptor else {}
+        self.required_operators = {DESCRIPTOR: {}} if uses_descriptor or prealign == "smooth_shells" else {}
+        if prealign == "smooth_shells":  # the eigenbasis of Smooth Shells' published preset (shared cache entries)
+            from shapecorr.axiomatic.smooth_shells import SmoothShellsConfig
+
+            self.required_operators["eigenbasis"] = {"k": SmoothShellsConfig().num_eigs}
 
     # ------------------------------------------------------------------------------------------------------
     # pieces
@@ -393,22 +452,68 @@ class DivFreeMatcher:
                 history.append((i_level, it, energies["align"], energies["reg"]))
         return coeffs.detach(), energies, history
 
-    def _score(self, st: dict, coeffs: torch.Tensor, fx, dx, dy) -> float:
-        """The energy ``E_align + lambda_reg E_reg`` of the first level's field, with fresh correspondences."""
+    def _score(self, st: dict, fx, dx, dy) -> float:
+        """Misalignment of a placement at rest (lower is better).
+
+        Every sample of either shape is paired with its nearest sample of the other in ``[xyz, w_n normals]``;
+        the score is the mean product-space distance ``|[xyz, w_n normals, w_s SHOT]|`` of these pairs (the first
+        level's weights). The descriptor term makes it intrinsic where the coordinates are not: a body turned front
+        to back overlaps itself in space, but its spatial pairs then disagree in SHOT.
+        """
         level = self.levels[0]
-        xs = st["bx"][st["order_x"][:level.n_samples]]
-        graph = knn_graph_edges(xs, min(self.knn, xs.shape[0] - 1))
-        with torch.no_grad():
-            pairs = self._correspondences(st, level, coeffs, fx, dx, dy)
-            e_align, e_reg = self._energy(st, level, coeffs, pairs, graph)
-        return float(e_align + self.lambda_reg * e_reg)
+        sx, sy = st["order_x"][:level.n_samples], st["order_y"][:level.n_samples]
+        geo_level = Level(level.n_modes, level.n_samples, level.iterations, level.lr, level.normal_weight, 0.0)
+        geo_x = self._embed(st["bx"], vertex_normals(st["bx"], fx), None, geo_level)[sx]
+        geo_y = self._embed(st["by"], st["ny"], None, geo_level)[sy]
+        nn_y, nn_x = bidirectional_nearest_neighbors(geo_x, geo_y, backend="brute")
+        full_x = geo_x if dx is None else torch.cat([geo_x, level.descriptor_weight * dx[sx]], dim=1)
+        full_y = geo_y if dy is None else torch.cat([geo_y, level.descriptor_weight * dy[sy]], dim=1)
+        return 0.5 * float((full_x - full_y[nn_y]).norm(dim=1).mean() + (full_y - full_x[nn_x]).norm(dim=1).mean())
+
+    def _prealign(self, x, y, vx, vy, fx, fy, dx, dy) -> tuple[torch.Tensor, list[float]]:
+        """The pre-alignment rotation of x (about its vertex mean) and the scores of all candidates."""
+        eye = torch.eye(3, dtype=torch.float64, device=vx.device)
+        if self.prealign == "none":
+            return eye, []
+        if self.prealign == "smooth_shells":
+            from shapecorr.axiomatic import smooth_shells as ss
+
+            shell_x, shell_y = ss.shape_from_sample(x), ss.shape_from_sample(y)
+            config = ss.SmoothShellsConfig(seed=self.seed)
+            rot, _, scores = ss.rigid_alignment(shell_x, shell_y, config, ss.basis_features(shell_x, shell_y))
+            return rot.to(device=vx.device, dtype=torch.float64), [float(v) for c in scores for v in c]
+        level = self.levels[0]
+        mean_x = vx.to(torch.float64).mean(0)
+        box_x, _ = df.box_normalization(vx, vy, self.margin)
+        rng = np.random.default_rng(self.seed)
+        sx = torch.from_numpy(farthest_point_sampling(vx.cpu(), min(level.n_samples, vx.shape[0]),
+                                                      start=int(rng.integers(vx.shape[0])))).to(vx.device)
+        sy = torch.from_numpy(farthest_point_sampling(vy.cpu(), min(level.n_samples, vy.shape[0]),
+                                                      start=int(rng.integers(vy.shape[0])))).to(vx.device)
+        nx, ny = vertex_normals(vx, fx), vertex_normals(vy, fy)
+        # the first level's product space in input units: descriptors scaled from box units
+        feat_x = None if dx is None else dx[sx] * (level.descriptor_weight / box_x.scale)
+        feat_y = None if dy is None else dy[sy] * (level.descriptor_weight / box_x.scale)
+        rotations, scores = [], []
+        for cand in orientation_candidates(vx, vy, self.prealign).to(vx.device):
+            # the candidate's orientation, refined by rigid ICP in the first level's product space
+            placed = (vx.to(torch.float64) - mean_x) @ cand.T + mean_x
+            icp, _ = rigid_icp(placed[sx], nx[sx].to(torch.float64) @ cand.T, vy[sy], ny[sy],
+                               self.prealign_icp_iterations, level.normal_weight / box_x.scale,
+                               feat_x, feat_y, backend="brute")  # a few hundred points: brute force
+            rot = icp @ cand
+            st = self._pair_state(((vx.to(torch.float64) - mean_x) @ rot.T + mean_x).to(torch.float32), vy, fy)
+            rotations.append(rot)
+            scores.append(self._score(st, fx, dx, dy))
+        self._last_candidates = rotations
+        return rotations[int(np.argmin(scores))], scores
 
     def fit(self, x, y) -> dict:
         """Optimize the field flowing x onto y (after the pre-alignment, docs/divfree.md §1).
 
-        With ``prealign`` on, x is turned about its vertex mean by each candidate rotation
-        (:func:`orientation_candidates`), the first level is run from each, and the candidate of the lowest energy
-        (:meth:`_score`) continues through the remaining levels.
+        With ``prealign`` on, x is first turned about its vertex mean (:meth:`_prealign`): each candidate rotation
+        of :func:`orientation_candidates` is refined by :func:`rigid_icp`, and the one of the lowest alignment
+        energy at rest (:meth:`_score`) is kept.
 
         Parameters
         ----------
@@ -429,29 +534,20 @@ class DivFreeMatcher:
         dy = None if dy is None else dy.to(vx.device)
         names = f"{x.name}, {y.name}"
         mean_x = vx.to(torch.float64).mean(0)
-        if self.prealign == "none":
-            rotations = torch.eye(3, dtype=torch.float64)[None]
-        else:
-            rotations = orientation_candidates(vx, vy, self.prealign)
-        start_coeffs = torch.zeros(df.n_fields(self.levels[0].n_modes), device=vx.device)
-        runs = []
-        for rot in rotations:
-            placed = vx if self.prealign == "none" else (
-                (vx.to(torch.float64) - mean_x) @ rot.T + mean_x).to(torch.float32)
-            st = self._pair_state(placed, vy, fy)
-            coeffs, energies, history = self._run_level(st, 0, start_coeffs, fx, dx, dy, names)
-            score = self._score(st, coeffs, fx, dx, dy) if len(rotations) > 1 else float("nan")
-            runs.append((score, st, coeffs, energies, history))
-        best = int(np.argmin([r[0] for r in runs])) if len(runs) > 1 else 0
-        _, st, coeffs, energies, history = runs[best]
-        for i_level in range(1, len(self.levels)):
+        rotation, scores = self._prealign(x, y, vx, vy, fx, fy, dx, dy)
+        placed = vx if self.prealign == "none" else (
+            (vx.to(torch.float64) - mean_x) @ rotation.T + mean_x).to(torch.float32)
+        st = self._pair_state(placed, vy, fy)
+        coeffs = torch.zeros(df.n_fields(self.levels[0].n_modes), device=vx.device)
+        energies, history = {}, []
+        for i_level in range(len(self.levels)):
             coeffs, level_energies, level_history = self._run_level(st, i_level, coeffs, fx, dx, dy, names)
             energies = level_energies or energies
             history += level_history
         return {"coeffs": coeffs, "box_x": st["box_x"], "box_y": st["box_y"], "energies": energies,
                 "history": history, "seconds": time.perf_counter() - start, "box_verts": (st["bx"], st["by"]),
-                "normals_y": st["ny"], "descriptors": (dx, dy), "rotation": rotations[best].to(vx.device),
-                "mean_x": mean_x.to(vx.device), "prealign_scores": [r[0] for r in runs]}
+                "normals_y": st["ny"], "descriptors": (dx, dy), "rotation": rotation,
+                "mean_x": mean_x.to(vx.device), "prealign_scores": scores}
 
     def _maps(self, fit: dict, x, y) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Full-resolution deformed x (box units) and the product-space maps x -> y, y -> x."""

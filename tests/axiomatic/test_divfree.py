@@ -11,7 +11,9 @@ from omegaconf import OmegaConf
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from shapecorr.axiomatic.divfree import DivFreeMatcher, knn_graph_edges, orientation_candidates, principal_frame
+from shapecorr.axiomatic.divfree import (
+    DivFreeMatcher, knn_graph_edges, orientation_candidates, principal_frame, rigid_icp,
+)
 from shapecorr.data.datasets import ShapeSample
 from shapecorr.data.shape import make_shape
 from shapecorr.errors import ConfigError
@@ -209,3 +211,22 @@ def test_prealignment_recovers_a_large_turn():
     r0 = DivFreeMatcher(**FAST, prealign="none").match(x, y)
     err0 = np.linalg.norm(vy[r0.p2p.numpy()] - vy[perm], axis=1) / scale
     assert err0.mean() > 5 * err.mean() + 0.05
+
+
+def test_rigid_icp_recovers_a_rigid_motion():
+    v, f = _blob(300)
+    x = torch.tensor(v, dtype=torch.float64)
+    nx = torch.tensor(trimesh.Trimesh(v, f, process=False).vertex_normals.copy())
+    rot = torch.from_numpy(Rotation.from_rotvec([0.03, -0.05, 0.04]).as_matrix())
+    shift = torch.tensor([0.02, 0.0, -0.01], dtype=torch.float64)
+    perm = torch.from_numpy(np.random.default_rng(2).permutation(len(v)))
+    y, ny = (x @ rot.T + shift)[perm], (nx @ rot.T)[perm]
+    r, t = rigid_icp(x, nx, y, ny, iterations=50, normal_weight=0.1)
+    torch.testing.assert_close(r, rot, atol=1e-6, rtol=0)
+    torch.testing.assert_close(t, shift, atol=1e-6, rtol=0)
+    # descriptors that identify the points pair them from the start: one step recovers a large turn
+    big = torch.from_numpy(Rotation.from_rotvec([0.0, 0.0, 2.5]).as_matrix())
+    feats = torch.eye(len(v), dtype=torch.float64) * 10.0
+    r, _ = rigid_icp(x, nx, (x @ big.T)[perm], (nx @ big.T)[perm], iterations=3, features_x=feats,
+                     features_y=feats[perm])
+    torch.testing.assert_close(r, big, atol=1e-6, rtol=0)
