@@ -27,6 +27,7 @@ divfree_smooth_shells_rigid ``model=divfree model.prealign=smooth_shells`` (Smoo
 smooth_shells             ``model=smooth_shells`` (config default)
 smooth_shells_original    ``model=smooth_shells model.rigid_joint=false model.score_descriptors=0``
                           (the original code's greedy rigid candidates and geometric scores)
+smooth_shells_scoredesc   ``model=smooth_shells model.score_descriptors=0.3`` (descriptors in the candidate scores)
 ========================  =============================================================================
 """
 
@@ -55,6 +56,7 @@ RUNS = {
     "divfree_smooth_shells_rigid": ["model=divfree", "model.prealign=smooth_shells"],
     "smooth_shells": ["model=smooth_shells"],
     "smooth_shells_original": ["model=smooth_shells", "model.rigid_joint=false", "model.score_descriptors=0"],
+    "smooth_shells_scoredesc": ["model=smooth_shells", "model.score_descriptors=0.3"],
 }
 
 

@@ -270,9 +270,12 @@ class DivFreeMatcher:
         Nearest-neighbour search (:func:`shapecorr.matching.nearest_neighbors.bidirectional_nearest_neighbors`).
     nn_workers : int
         Threads of the kd-tree search (1: single-threaded).
-    prealign : {"none", "pca", "pca_turns"}
-        Rigid pre-alignment (docs/divfree.md §1): x turned about its vertex mean by each candidate of
-        :func:`orientation_candidates`, the first level run from each, the lowest energy kept; ``none``: x as given.
+    prealign : {"none", "pca", "pca_turns", "smooth_shells"}
+        Rigid pre-alignment of x about its vertex mean (docs/divfree.md §1): ``pca`` / ``pca_turns``: the
+        candidates of :func:`orientation_candidates`, refined by :func:`rigid_icp` and scored by :meth:`_score`;
+        ``smooth_shells``: the rigid stage of Smooth Shells (needs the eigenbasis); ``none``: x as given.
+    prealign_icp_iterations : int
+        ICP iterations per candidate of the ``pca`` modes.
     """
 
     needs_ground_truth = False
@@ -298,7 +301,7 @@ class DivFreeMatcher:
         seed: int = 0,
         nn_backend: str = "auto",
         nn_workers: int = 1,
-        prealign: str = "pca_turns",
+        prealign: str = "smooth_shells",
         prealign_icp_iterations: int = 30,
     ):
         modes = [int(m) for m in (modes if isinstance(modes, (list, tuple)) else [modes])]

@@ -115,7 +115,7 @@ def test_remeshed_self_match():
     vx, fx = _blob(300)
     vy, fy = _blob(450)  # the same surface, another triangulation
     x, y = _sample(vx, fx, "x"), _sample(vy, fy, "y")
-    r = DivFreeMatcher(**FAST).match(x, y)
+    r = DivFreeMatcher(**FAST, prealign="none").match(x, y)
     scale = np.sqrt(surface_area(vy, fy))
     spacing = cKDTree(vy).query(vx)[0].mean() / scale  # error of the best vertex-to-vertex map
     err = np.linalg.norm(vy[r.p2p.numpy()] - vx, axis=1) / scale
@@ -130,8 +130,9 @@ def test_config_has_published_defaults():
     finest = matcher.levels[-1]
     assert (finest.n_modes, finest.n_samples, finest.iterations) == (8, 2000, 100)
     assert (matcher.n_steps, matcher.lambda_reg, matcher.knn, matcher.margin) == (16, 20.0, 5, 0.05)
-    assert matcher.required_operators == {"shot": {}}
-    assert matcher.prealign == "pca_turns"
+    assert matcher.prealign == "smooth_shells"
+    assert matcher.required_operators == {"shot": {}, "eigenbasis": {"k": 509}}
+    assert DivFreeMatcher(prealign="pca").required_operators == {"shot": {}}
 
 
 def test_bad_input(rigid_pair):
@@ -198,7 +199,7 @@ def test_prealignment_recovers_a_large_turn():
     vy[perm] = v @ rot.T + [0.2, 0.1, -0.1]
     x, y = _sample(v, f, "x"), _sample(vy, perm[f], "y")
     scale = np.sqrt(surface_area(vy, y.faces.numpy()))
-    r = DivFreeMatcher(**FAST).match(x, y)
+    r = DivFreeMatcher(**FAST, prealign="pca_turns").match(x, y)
     err = np.linalg.norm(vy[r.p2p.numpy()] - vy[perm], axis=1) / scale
     assert (r.p2p.numpy() == perm).mean() > 0.9 and err.mean() < 0.01
     # frames: x as given at t = 0, on y at t = 1, the volume kept in between
