@@ -52,8 +52,9 @@ def animation(seq: tuple[int, int], subject: int, n_frames: int, template_verts:
     name_a, angles_a = poses.key_pose(plan, seq[0])
     name_b, angles_b = poses.key_pose(plan, seq[1])
     s = np.linspace(0.0, 1.0, n_frames)
-    frames = np.stack([blend_skin(rest, template.weights, pose_transforms(plan, heads, (1 - t) * angles_a + t * angles_b))
-                       for t in s]) @ OUTPUT_ROTATION.T
+    posed = [pose_transforms(plan, heads, (1 - t) * angles_a + t * angles_b) for t in s]
+    frames = np.stack([blend_skin(rest, template.weights, transforms) for transforms in posed])
+    frames = frames @ OUTPUT_ROTATION.T
     return frames, np.asarray(template.faces), s, (name_a, name_b)
 
 
