@@ -276,6 +276,11 @@ class DivFreeMatcher:
         ``smooth_shells``: the rigid stage of Smooth Shells (needs the eigenbasis); ``none``: x as given.
     prealign_icp_iterations : int
         ICP iterations per candidate of the ``pca`` modes.
+    prealign_keep_input : bool
+        ``smooth_shells`` mode: x's input orientation is one more candidate of the rigid stage's scores.
+    prealign_score_descriptors : float
+        ``smooth_shells`` mode: weight of the intrinsic basis features in the candidates' scores (Smooth Shells'
+        ``score_descriptors``; 0: its original geometric score).
     """
 
     needs_ground_truth = False
@@ -303,6 +308,8 @@ class DivFreeMatcher:
         nn_workers: int = 1,
         prealign: str = "smooth_shells",
         prealign_icp_iterations: int = 30,
+        prealign_keep_input: bool = True,
+        prealign_score_descriptors: float = 0.3,
     ):
         modes = [int(m) for m in (modes if isinstance(modes, (list, tuple)) else [modes])]
         n = len(modes)
@@ -344,6 +351,8 @@ class DivFreeMatcher:
         self.nn_workers = int(nn_workers)
         self.prealign = prealign
         self.prealign_icp_iterations = int(prealign_icp_iterations)
+        self.prealign_keep_input = bool(prealign_keep_input)
+        self.prealign_score_descriptors = float(prealign_score_descriptors)
         uses_descriptor = any(level.descriptor_weight > 0 for level in self.levels)
         self.required_operators = {DESCRIPTOR: {}} if uses_descriptor or prealign == "smooth_shells" else {}
         if prealign == "smooth_shells":  # the eigenbasis of Smooth Shells' published preset (shared cache entries)
@@ -482,7 +491,8 @@ class DivFreeMatcher:
             from shapecorr.axiomatic import smooth_shells as ss
 
             shell_x, shell_y = ss.shape_from_sample(x), ss.shape_from_sample(y)
-            config = ss.SmoothShellsConfig(seed=self.seed)
+            config = ss.SmoothShellsConfig(seed=self.seed, rigid_keep_input=self.prealign_keep_input,
+                                           score_descriptors=self.prealign_score_descriptors)
             rot, _, scores = ss.rigid_alignment(shell_x, shell_y, config, ss.basis_features(shell_x, shell_y))
             return rot.to(device=vx.device, dtype=torch.float64), [float(v) for c in scores for v in c]
         level = self.levels[0]
@@ -538,8 +548,8 @@ class DivFreeMatcher:
         names = f"{x.name}, {y.name}"
         mean_x = vx.to(torch.float64).mean(0)
         rotation, scores = self._prealign(x, y, vx, vy, fx, fy, dx, dy)
-        placed = vx if self.prealign == "none" else (
-            (vx.to(torch.float64) - mean_x) @ rotation.T + mean_x).to(torch.float32)
+        kept = bool(torch.equal(rotation, torch.eye(3, dtype=rotation.dtype, device=rotation.device)))
+        placed = vx if kept else ((vx.to(torch.float64) - mean_x) @ rotation.T + mean_x).to(torch.float32)
         st = self._pair_state(placed, vy, fy)
         coeffs = torch.zeros(df.n_fields(self.levels[0].n_modes), device=vx.device)
         energies, history = {}, []
