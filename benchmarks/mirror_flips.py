@@ -11,19 +11,20 @@ processes at once (each with ``--threads`` threads; on a GPU machine they share 
 ``RUN_DIR/<run>/part_<k>``; a run stopped early resumes where it stopped.
 
 A pair counts as **mirrored** when its mean geodesic error against the mirrored ground truth (``corres/*.sym.vts``)
-is below its error against the ground truth. Recorded per run: mean / median error, PCK-free per-pair lists
-(error, error vs mirror, seconds), the mirrored count and pairs, seconds per pair (the matcher alone), and for
+is below its error against the ground truth. Recorded per run: mean / median error, the per-pair list (error,
+error vs mirror, seconds), the mirrored count and pairs, seconds per pair (the matcher alone), and for
 interpolating matchers the mean volume change at t = 1. Written to ``--out``
 (default ``benchmarks/results/mirror_flips.json``). No ground truth is used by any matcher; it only scores.
 
 ========================  =============================================================================
 run                       evaluate.py arguments
 ========================  =============================================================================
-divfree                   ``model=divfree`` (config default: PCA pre-alignment with 8 orientation candidates)
+divfree                   ``model=divfree`` (config default: Smooth Shells' rigid stage as the pre-alignment)
 divfree_pca               ``model=divfree model.prealign=pca`` (the paper's 4 axis-sign candidates)
 divfree_noprealign        ``model=divfree model.prealign=none`` (x as given)
 divfree_pca_turns         ``model=divfree model.prealign=pca_turns`` (8 PCA orientations, ICP-refined)
-divfree_smooth_shells_rigid ``model=divfree model.prealign=smooth_shells`` (Smooth Shells' rigid stage)
+divfree_smooth_shells_rigid ``model=divfree model.prealign=smooth_shells model.prealign_keep_input=false
+                          model.prealign_score_descriptors=0`` (the rigid stage's own choice, geometric scores)
 smooth_shells             ``model=smooth_shells`` (config default)
 smooth_shells_original    ``model=smooth_shells model.rigid_joint=false model.score_descriptors=0``
                           (the original code's greedy rigid candidates and geometric scores)
@@ -53,7 +54,8 @@ RUNS = {
     "divfree_pca": ["model=divfree", "model.prealign=pca"],
     "divfree_noprealign": ["model=divfree", "model.prealign=none"],
     "divfree_pca_turns": ["model=divfree", "model.prealign=pca_turns"],
-    "divfree_smooth_shells_rigid": ["model=divfree", "model.prealign=smooth_shells"],
+    "divfree_smooth_shells_rigid": ["model=divfree", "model.prealign=smooth_shells", "model.prealign_keep_input=false",
+                                    "model.prealign_score_descriptors=0"],
     "smooth_shells": ["model=smooth_shells"],
     "smooth_shells_original": ["model=smooth_shells", "model.rigid_joint=false", "model.score_descriptors=0"],
     "smooth_shells_scoredesc": ["model=smooth_shells", "model.score_descriptors=0.3"],
