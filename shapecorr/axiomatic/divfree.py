@@ -518,7 +518,6 @@ class DivFreeMatcher:
             st = self._pair_state(((vx.to(torch.float64) - mean_x) @ rot.T + mean_x).to(torch.float32), vy, fy)
             rotations.append(rot)
             scores.append(self._score(st, fx, dx, dy))
-        self._last_candidates = rotations
         return rotations[int(np.argmin(scores))], scores
 
     def fit(self, x, y) -> dict:
