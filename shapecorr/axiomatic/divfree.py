@@ -35,12 +35,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.geometry import divergence_free as df
 from shapecorr.geometry.normals import vertex_normals
 from shapecorr.geometry.sampling import farthest_point_sampling
-from shapecorr.losses.arap import arap_energy
+from shapecorr.losses.arap import arap_energy, rotations_from_covariances
 from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
 from shapecorr.matching.result import MatchResult
 
@@ -105,6 +106,129 @@ def knn_graph_edges(points: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.T
             torch.from_numpy(counts.astype(np.float32)).to(points.device))
 
 
+#: Pre-alignment modes (docs/divfree.md §1): none; the published PCA pre-alignment (4 orientations of x's principal
+#: frame onto y's); the same with the 4 quarter turns about the first principal axis for each of the two senses of
+#: that axis (8 orientations: also covers shapes whose second and third principal axes are swapped); the rigid stage
+#: of Smooth Shells (spectral axis, axis ICP, candidate turns scored by short non-rigid runs; docs/smooth_shells.md).
+PREALIGN_MODES = ("none", "pca", "pca_turns", "smooth_shells")
+
+
+def principal_frame(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Vertex mean and principal axes of a point set.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+
+    Returns
+    -------
+    mean : (3,) float64
+    axes : (3, 3) float64
+        Columns: the principal axes by decreasing variance, a right-handed frame (determinant +1).
+    """
+    p = points.detach().to(torch.float64)
+    mean = p.mean(0)
+    centred = p - mean
+    _, vecs = torch.linalg.eigh(centred.T @ centred / max(p.shape[0], 1))  # ascending eigenvalues
+    axes = vecs.flip(1)
+    if float(torch.linalg.det(axes)) < 0:
+        axes[:, 2] = -axes[:, 2]
+    return mean, axes
+
+
+def orientation_candidates(points_x: torch.Tensor, points_y: torch.Tensor, mode: str = "pca") -> torch.Tensor:
+    """Rotations that turn x's principal frame onto y's, one per candidate orientation.
+
+    ``pca``: the 4 proper rotations ``A_y S A_x^T`` with ``S = diag(+-1, +-1, +-1)``, ``det S = 1`` (the sign of
+    each principal axis is arbitrary). ``pca_turns``: ``A_y T A_x^T`` for the 8 proper ``T`` that keep the first
+    axis up to its sign: the 4 quarter turns about it, for either sense (contains the 4 of ``pca``).
+
+    Parameters
+    ----------
+    points_x : (n, 3) float
+    points_y : (m, 3) float
+    mode : {"pca", "pca_turns"}
+
+    Returns
+    -------
+    (C, 3, 3) float64
+        Rotations ``R`` (``det R = 1``) to apply to x's points centred on their mean.
+    """
+    if mode not in PREALIGN_MODES[1:]:
+        raise ConfigError(f"divfree: orientation candidates need mode in {PREALIGN_MODES[1:]}, got {mode!r}")
+    _, ax = principal_frame(points_x)
+    _, ay = principal_frame(points_y)
+    if mode == "pca":
+        signs = [(1.0, 1.0, 1.0), (1.0, -1.0, -1.0), (-1.0, 1.0, -1.0), (-1.0, -1.0, 1.0)]
+        mids = [torch.diag(torch.tensor(s, dtype=torch.float64)) for s in signs]
+    else:
+        mids = []
+        for first in (1.0, -1.0):
+            flip = torch.diag(torch.tensor([first, first, 1.0], dtype=torch.float64))  # det +1
+            for c, s in ((1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0)):  # quarter turns about the first axis
+                turn = torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=torch.float64)
+                mids.append(flip @ turn)
+    return torch.stack([ay @ m @ ax.T for m in mids])
+
+
+def fractional_rotation(rotation: torch.Tensor, fraction: float) -> torch.Tensor:
+    """``R^s``: the rotation about the same axis by ``s`` times the angle of ``rotation (3, 3)`` (float64)."""
+    vec = Rotation.from_matrix(rotation.detach().cpu().double().numpy()).as_rotvec()
+    return torch.from_numpy(Rotation.from_rotvec(fraction * vec).as_matrix()).to(rotation)
+
+
+def rigid_icp(points_x: torch.Tensor, normals_x: torch.Tensor, points_y: torch.Tensor, normals_y: torch.Tensor,
+              iterations: int = 30, normal_weight: float = 0.0, features_x: torch.Tensor | None = None,
+              features_y: torch.Tensor | None = None, backend: str = "auto",
+              workers: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rigid ICP of x onto y with pairs in both directions, in the product space ``[xyz, w_n normals, features]``.
+
+    Each iteration pairs every point of x with its nearest point of y and every point of y with its nearest point
+    of x (:func:`shapecorr.matching.nearest_neighbors.bidirectional_nearest_neighbors`), then fits the rotation and
+    translation of all pairs by least squares (Procrustes, :func:`shapecorr.losses.arap.rotations_from_covariances`).
+
+    Parameters
+    ----------
+    points_x, normals_x : (n, 3) float
+    points_y, normals_y : (m, 3) float
+    iterations : int
+    normal_weight : float
+        Weight of the normals against the coordinates (in the units of the points).
+    features_x, features_y : (n, c), (m, c) float, optional
+        Rotation-invariant descriptors, already weighted (e.g. SHOT): they pair points by what they look like,
+        so that ICP is drawn to the intrinsically right pose.
+    backend, workers
+        Nearest-neighbour search options.
+
+    Returns
+    -------
+    rotation : (3, 3) float64
+    translation : (3,) float64
+        ``rotation @ p + translation`` moves x onto y.
+    """
+    px, nx = points_x.detach().to(torch.float64), normals_x.detach().to(torch.float64)
+    py, ny = points_y.detach().to(torch.float64), normals_y.detach().to(torch.float64)
+    rot = torch.eye(3, dtype=torch.float64, device=px.device)
+    trans = py.mean(0) - px.mean(0)
+    extra_x = [] if features_x is None else [features_x.detach().to(torch.float64)]
+    extra_y = [] if features_y is None else [features_y.detach().to(torch.float64)]
+    emb_y = torch.cat([py, normal_weight * ny, *extra_y], dim=1).to(torch.float32)
+    for _ in range(iterations):
+        moved, turned = px @ rot.T + trans, nx @ rot.T
+        emb_x = torch.cat([moved, normal_weight * turned, *extra_x], dim=1).to(torch.float32)
+        nn_y, nn_x = bidirectional_nearest_neighbors(emb_x, emb_y, backend=backend, workers=workers)
+        src = torch.cat([px, px[nn_x]])
+        dst = torch.cat([py[nn_y], py])
+        cs, cd = src.mean(0), dst.mean(0)
+        new_rot = rotations_from_covariances((dst - cd).T @ (src - cs))
+        new_trans = cd - new_rot @ cs
+        done = bool(torch.allclose(new_rot, rot, atol=1e-10) and torch.allclose(new_trans, trans, atol=1e-10))
+        rot, trans = new_rot, new_trans
+        if done:
+            break
+    return rot, trans
+
+
 class DivFreeMatcher:
     """Divergence-free deformation matcher (module docstring; parameters in configs/model/divfree.yaml).
 
@@ -146,6 +270,17 @@ class DivFreeMatcher:
         Nearest-neighbour search (:func:`shapecorr.matching.nearest_neighbors.bidirectional_nearest_neighbors`).
     nn_workers : int
         Threads of the kd-tree search (1: single-threaded).
+    prealign : {"none", "pca", "pca_turns", "smooth_shells"}
+        Rigid pre-alignment of x about its vertex mean (docs/divfree.md §1): ``pca`` / ``pca_turns``: the
+        candidates of :func:`orientation_candidates`, refined by :func:`rigid_icp` and scored by :meth:`_score`;
+        ``smooth_shells``: the rigid stage of Smooth Shells (needs the eigenbasis); ``none``: x as given.
+    prealign_icp_iterations : int
+        ICP iterations per candidate of the ``pca`` modes.
+    prealign_keep_input : bool
+        ``smooth_shells`` mode: x's input orientation is one more candidate of the rigid stage's scores.
+    prealign_score_descriptors : float
+        ``smooth_shells`` mode: weight of the intrinsic basis features in the candidates' scores (Smooth Shells'
+        ``score_descriptors``; 0: its original geometric score).
     """
 
     needs_ground_truth = False
@@ -171,6 +306,10 @@ class DivFreeMatcher:
         seed: int = 0,
         nn_backend: str = "auto",
         nn_workers: int = 1,
+        prealign: str = "smooth_shells",
+        prealign_icp_iterations: int = 30,
+        prealign_keep_input: bool = True,
+        prealign_score_descriptors: float = 0.3,
     ):
         modes = [int(m) for m in (modes if isinstance(modes, (list, tuple)) else [modes])]
         n = len(modes)
@@ -187,6 +326,8 @@ class DivFreeMatcher:
             raise ConfigError("divfree: product-space weights must be non-negative")
         if rule not in df.FLOW_RULES:
             raise ConfigError(f"divfree: rule must be one of {df.FLOW_RULES}, got {rule!r}")
+        if prealign not in PREALIGN_MODES:
+            raise ConfigError(f"divfree: prealign must be one of {PREALIGN_MODES}, got {prealign!r}")
         if convention not in df.CONVENTIONS:
             raise ConfigError(f"divfree: convention must be one of {df.CONVENTIONS}, got {convention!r}")
         for name, value in (("n_steps", n_steps), ("knn", knn), ("corr_every", corr_every), ("chunk_size", chunk_size)):
@@ -208,8 +349,16 @@ class DivFreeMatcher:
         self.seed = int(seed)
         self.nn_backend = nn_backend
         self.nn_workers = int(nn_workers)
+        self.prealign = prealign
+        self.prealign_icp_iterations = int(prealign_icp_iterations)
+        self.prealign_keep_input = bool(prealign_keep_input)
+        self.prealign_score_descriptors = float(prealign_score_descriptors)
         uses_descriptor = any(level.descriptor_weight > 0 for level in self.levels)
-        self.required_operators = {DESCRIPTOR: {}} if uses_descriptor else {}
+        self.required_operators = {DESCRIPTOR: {}} if uses_descriptor or prealign == "smooth_shells" else {}
+        if prealign == "smooth_shells":  # the eigenbasis of Smooth Shells' published preset (shared cache entries)
+            from shapecorr.axiomatic.smooth_shells import SmoothShellsConfig
+
+            self.required_operators["eigenbasis"] = {"k": SmoothShellsConfig().num_eigs}
 
     # ------------------------------------------------------------------------------------------------------
     # pieces
@@ -252,28 +401,10 @@ class DivFreeMatcher:
     # ------------------------------------------------------------------------------------------------------
     # optimization
     # ------------------------------------------------------------------------------------------------------
-    def fit(self, x, y) -> dict:
-        """Optimize the field flowing x onto y.
-
-        Parameters
-        ----------
-        x, y : ShapeSample
-
-        Returns
-        -------
-        dict with ``coeffs (3 K^3,)`` (finest level), the box transforms ``box_x``, ``box_y``, the energies of
-        the last iteration, and ``seconds``.
-        """
-        start = time.perf_counter()
-        vx = x.verts.detach().to(torch.float32)
-        vy = y.verts.detach().to(device=vx.device, dtype=torch.float32)
+    def _pair_state(self, vx: torch.Tensor, vy: torch.Tensor, fy: torch.Tensor) -> dict:
+        """Box transforms, box coordinates, y's normals and the FPS orders of one placement of x."""
         box_x, box_y = df.box_normalization(vx, vy, self.margin)
         bx, by = box_x.to_box(vx), box_y.to_box(vy)
-        fx, fy = x.faces.to(vx.device), y.faces.to(vx.device)
-        ny = vertex_normals(by, fy)
-        dx, dy = self._descriptor(x), self._descriptor(y)
-        dx = None if dx is None else dx.to(vx.device)
-        dy = None if dy is None else dy.to(vx.device)
         n_max = max(level.n_samples for level in self.levels)
         rng = np.random.default_rng(self.seed)
         # FPS orderings: every prefix is itself a farthest-point sample, so each level takes a prefix.
@@ -281,43 +412,154 @@ class DivFreeMatcher:
                                                            start=int(rng.integers(bx.shape[0])))).to(vx.device)
         order_y = torch.from_numpy(farthest_point_sampling(by.cpu(), min(n_max, by.shape[0]),
                                                            start=int(rng.integers(by.shape[0])))).to(vx.device)
+        return {"box_x": box_x, "box_y": box_y, "bx": bx, "by": by, "ny": vertex_normals(by, fy),
+                "order_x": order_x, "order_y": order_y}
+
+    def _correspondences(self, st: dict, level: Level, coeffs: torch.Tensor, fx, dx, dy) -> tuple:
+        """Product-space pairs of the current field: samples of x -> vertices of y, samples of y -> samples of x."""
+        sx, sy = st["order_x"][:level.n_samples], st["order_y"][:level.n_samples]
+        with torch.no_grad():
+            emb_y_all = self._embed(st["by"], st["ny"], dy, level)
+            moved = self._flow(st["bx"], coeffs.detach())
+            emb_x_all = self._embed(moved, vertex_normals(moved, fx), dx, level)
+            match_xy, _ = self._nn(emb_x_all[sx], emb_y_all)
+            match_yx, _ = self._nn(emb_y_all[sy], emb_x_all[sx])
+        return match_xy, match_yx
+
+    def _energy(self, st: dict, level: Level, coeffs: torch.Tensor, pairs: tuple, graph: tuple):
+        """``(E_align, E_reg)`` of ``coeffs`` for fixed pairs (differentiable in ``coeffs``)."""
+        match_xy, match_yx = pairs
+        xs = st["bx"][st["order_x"][:level.n_samples]]
+        by, sy = st["by"], st["order_y"][:level.n_samples]
+        path = self._flow(xs, coeffs, return_path=True)  # (N + 1, m, 3)
+        end = path[-1]
+        e_align = 0.5 * (self._huber_mse(end - by[match_xy]) + self._huber_mse(end[match_yx] - by[sy]))
+        e_reg = arap_energy(path[:1].expand_as(path[1:]), path[1:], *graph, mode="average").sum()
+        return e_align, e_reg / (xs.shape[0] * self.n_steps * ARAP_NORMALIZATION / self.knn)
+
+    def _run_level(self, st: dict, i_level: int, coeffs: torch.Tensor, fx, dx, dy, names: str) -> tuple:
+        """Adam on one level from ``coeffs`` (resized to the level's modes).
+
+        Returns the coefficients, the last energies and the energy history ``(level, iteration, align, reg)`` at
+        every correspondence update.
+        """
+        level = self.levels[i_level]
+        coeffs = df.resize_coefficients(coeffs.detach(), level.n_modes).requires_grad_(True)
+        xs = st["bx"][st["order_x"][:level.n_samples]]
+        graph = knn_graph_edges(xs, min(self.knn, xs.shape[0] - 1))
+        optimizer = torch.optim.Adam([coeffs], lr=level.lr)
+        energies, history, pairs = {}, [], None
+        for it in range(level.iterations):
+            if it % self.corr_every == 0:
+                pairs = self._correspondences(st, level, coeffs, fx, dx, dy)
+            optimizer.zero_grad(set_to_none=True)
+            e_align, e_reg = self._energy(st, level, coeffs, pairs, graph)
+            loss = e_align + self.lambda_reg * e_reg
+            if not bool(torch.isfinite(loss.detach())):
+                raise NumericalError(f"divfree: the energy became non-finite on pair ({names}); lower model.lr")
+            loss.backward()
+            optimizer.step()
+            energies = {"align": float(e_align.detach()), "reg": float(e_reg.detach())}
+            if it % self.corr_every == 0:
+                history.append((i_level, it, energies["align"], energies["reg"]))
+        return coeffs.detach(), energies, history
+
+    def _score(self, st: dict, fx, dx, dy) -> float:
+        """Misalignment of a placement at rest (lower is better).
+
+        Every sample of either shape is paired with its nearest sample of the other in ``[xyz, w_n normals]``;
+        the score is the mean product-space distance ``|[xyz, w_n normals, w_s SHOT]|`` of these pairs (the first
+        level's weights). The descriptor term makes it intrinsic where the coordinates are not: a body turned front
+        to back overlaps itself in space, but its spatial pairs then disagree in SHOT.
+        """
+        level = self.levels[0]
+        sx, sy = st["order_x"][:level.n_samples], st["order_y"][:level.n_samples]
+        geo_level = Level(level.n_modes, level.n_samples, level.iterations, level.lr, level.normal_weight, 0.0)
+        geo_x = self._embed(st["bx"], vertex_normals(st["bx"], fx), None, geo_level)[sx]
+        geo_y = self._embed(st["by"], st["ny"], None, geo_level)[sy]
+        nn_y, nn_x = bidirectional_nearest_neighbors(geo_x, geo_y, backend="brute")
+        full_x = geo_x if dx is None else torch.cat([geo_x, level.descriptor_weight * dx[sx]], dim=1)
+        full_y = geo_y if dy is None else torch.cat([geo_y, level.descriptor_weight * dy[sy]], dim=1)
+        return 0.5 * float((full_x - full_y[nn_y]).norm(dim=1).mean() + (full_y - full_x[nn_x]).norm(dim=1).mean())
+
+    def _prealign(self, x, y, vx, vy, fx, fy, dx, dy) -> tuple[torch.Tensor, list[float]]:
+        """The pre-alignment rotation of x (about its vertex mean) and the scores of all candidates."""
+        eye = torch.eye(3, dtype=torch.float64, device=vx.device)
+        if self.prealign == "none":
+            return eye, []
+        if self.prealign == "smooth_shells":
+            from shapecorr.axiomatic import smooth_shells as ss
+
+            shell_x, shell_y = ss.shape_from_sample(x), ss.shape_from_sample(y)
+            config = ss.SmoothShellsConfig(seed=self.seed, rigid_keep_input=self.prealign_keep_input,
+                                           score_descriptors=self.prealign_score_descriptors)
+            rot, _, scores = ss.rigid_alignment(shell_x, shell_y, config, ss.basis_features(shell_x, shell_y))
+            return rot.to(device=vx.device, dtype=torch.float64), [float(v) for c in scores for v in c]
+        level = self.levels[0]
+        mean_x = vx.to(torch.float64).mean(0)
+        box_x, _ = df.box_normalization(vx, vy, self.margin)
+        rng = np.random.default_rng(self.seed)
+        sx = torch.from_numpy(farthest_point_sampling(vx.cpu(), min(level.n_samples, vx.shape[0]),
+                                                      start=int(rng.integers(vx.shape[0])))).to(vx.device)
+        sy = torch.from_numpy(farthest_point_sampling(vy.cpu(), min(level.n_samples, vy.shape[0]),
+                                                      start=int(rng.integers(vy.shape[0])))).to(vx.device)
+        nx, ny = vertex_normals(vx, fx), vertex_normals(vy, fy)
+        # the first level's product space in input units: descriptors scaled from box units
+        feat_x = None if dx is None else dx[sx] * (level.descriptor_weight / box_x.scale)
+        feat_y = None if dy is None else dy[sy] * (level.descriptor_weight / box_x.scale)
+        rotations, scores = [], []
+        for cand in orientation_candidates(vx, vy, self.prealign).to(vx.device):
+            # the candidate's orientation, refined by rigid ICP in the first level's product space
+            placed = (vx.to(torch.float64) - mean_x) @ cand.T + mean_x
+            icp, _ = rigid_icp(placed[sx], nx[sx].to(torch.float64) @ cand.T, vy[sy], ny[sy],
+                               self.prealign_icp_iterations, level.normal_weight / box_x.scale,
+                               feat_x, feat_y, backend="brute")  # a few hundred points: brute force
+            rot = icp @ cand
+            st = self._pair_state(((vx.to(torch.float64) - mean_x) @ rot.T + mean_x).to(torch.float32), vy, fy)
+            rotations.append(rot)
+            scores.append(self._score(st, fx, dx, dy))
+        return rotations[int(np.argmin(scores))], scores
+
+    def fit(self, x, y) -> dict:
+        """Optimize the field flowing x onto y (after the pre-alignment, docs/divfree.md §1).
+
+        With ``prealign`` on, x is first turned about its vertex mean (:meth:`_prealign`): each candidate rotation
+        of :func:`orientation_candidates` is refined by :func:`rigid_icp`, and the one of the lowest alignment
+        energy at rest (:meth:`_score`) is kept.
+
+        Parameters
+        ----------
+        x, y : ShapeSample
+
+        Returns
+        -------
+        dict with ``coeffs (3 K^3,)`` (finest level), the box transforms ``box_x``, ``box_y`` (x's of its turned
+        placement), ``rotation (3, 3)`` float64 and ``mean_x (3,)`` (x was turned by ``rotation`` about
+        ``mean_x``), the candidates' ``prealign_scores``, the energies of the last iteration, and ``seconds``.
+        """
+        start = time.perf_counter()
+        vx = x.verts.detach().to(torch.float32)
+        vy = y.verts.detach().to(device=vx.device, dtype=torch.float32)
+        fx, fy = x.faces.to(vx.device), y.faces.to(vx.device)
+        dx, dy = self._descriptor(x), self._descriptor(y)
+        dx = None if dx is None else dx.to(vx.device)
+        dy = None if dy is None else dy.to(vx.device)
+        names = f"{x.name}, {y.name}"
+        mean_x = vx.to(torch.float64).mean(0)
+        rotation, scores = self._prealign(x, y, vx, vy, fx, fy, dx, dy)
+        kept = bool(torch.equal(rotation, torch.eye(3, dtype=rotation.dtype, device=rotation.device)))
+        placed = vx if kept else ((vx.to(torch.float64) - mean_x) @ rotation.T + mean_x).to(torch.float32)
+        st = self._pair_state(placed, vy, fy)
         coeffs = torch.zeros(df.n_fields(self.levels[0].n_modes), device=vx.device)
         energies, history = {}, []
-        for i_level, level in enumerate(self.levels):
-            coeffs = df.resize_coefficients(coeffs.detach(), level.n_modes).requires_grad_(True)
-            sx, sy = order_x[:level.n_samples], order_y[:level.n_samples]
-            xs = bx[sx]
-            edges, counts = knn_graph_edges(xs, min(self.knn, xs.shape[0] - 1))
-            optimizer = torch.optim.Adam([coeffs], lr=level.lr)
-            emb_y_all = self._embed(by, ny, dy, level)
-            emb_y_s = emb_y_all[sy]
-            for it in range(level.iterations):
-                if it % self.corr_every == 0:
-                    with torch.no_grad():
-                        moved = self._flow(bx, coeffs.detach())
-                        emb_x_all = self._embed(moved, vertex_normals(moved, fx), dx, level)
-                        match_xy, _ = self._nn(emb_x_all[sx], emb_y_all)  # samples of x -> vertices of y
-                        match_yx, _ = self._nn(emb_y_s, emb_x_all[sx])  # samples of y -> samples of x
-                    target_xy, target_yx = by[match_xy], by[sy]
-                optimizer.zero_grad(set_to_none=True)
-                path = self._flow(xs, coeffs, return_path=True)  # (N + 1, m, 3)
-                end = path[-1]
-                e_align = 0.5 * (self._huber_mse(end - target_xy) + self._huber_mse(end[match_yx] - target_yx))
-                e_reg = arap_energy(path[:1].expand_as(path[1:]), path[1:], edges, counts, mode="average").sum()
-                e_reg = e_reg / (xs.shape[0] * self.n_steps * ARAP_NORMALIZATION / self.knn)
-                loss = e_align + self.lambda_reg * e_reg
-                if not bool(torch.isfinite(loss.detach())):
-                    raise NumericalError(
-                        f"divfree: the energy became non-finite on pair ({x.name}, {y.name}); lower model.lr"
-                    )
-                loss.backward()
-                optimizer.step()
-                energies = {"align": float(e_align.detach()), "reg": float(e_reg.detach())}
-                if it % self.corr_every == 0:
-                    history.append((i_level, it, energies["align"], energies["reg"]))
-        return {"coeffs": coeffs.detach(), "box_x": box_x, "box_y": box_y, "energies": energies, "history": history,
-                "seconds": time.perf_counter() - start, "box_verts": (bx, by), "normals_y": ny,
-                "descriptors": (dx, dy)}
+        for i_level in range(len(self.levels)):
+            coeffs, level_energies, level_history = self._run_level(st, i_level, coeffs, fx, dx, dy, names)
+            energies = level_energies or energies
+            history += level_history
+        return {"coeffs": coeffs, "box_x": st["box_x"], "box_y": st["box_y"], "energies": energies,
+                "history": history, "seconds": time.perf_counter() - start, "box_verts": (st["bx"], st["by"]),
+                "normals_y": st["ny"], "descriptors": (dx, dy), "rotation": rotation,
+                "mean_x": mean_x.to(vx.device), "prealign_scores": scores}
 
     def _maps(self, fit: dict, x, y) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Full-resolution deformed x (box units) and the product-space maps x -> y, y -> x."""
@@ -341,7 +583,19 @@ class DivFreeMatcher:
         box_x, box_y = fit["box_x"], fit["box_y"]
         shift = (box_y.center - box_x.center).to(frames)
         t = times.to(frames).reshape(-1, 1, 1)
-        return box_x.from_box(frames) + t * shift
+        frames = box_x.from_box(frames) + t * shift
+        rotation = fit["rotation"]
+        if self.prealign == "none" or bool(torch.equal(rotation, torch.eye(3, dtype=rotation.dtype,
+                                                                             device=rotation.device))):
+            return frames
+        # Undo the remaining part of the pre-alignment: frame t is turned by R^(t - 1) about its vertex mean, so
+        # t = 0 is x as given and t = 1 is the flowed x in y's frame (a rotation: volume and angles unchanged).
+        out = []
+        for frame, tk in zip(frames, times.tolist()):
+            turn = fractional_rotation(rotation, tk - 1.0).to(frame)
+            centre = frame.mean(0)
+            out.append((frame - centre) @ turn.T + centre)
+        return torch.stack(out)
 
     def interpolate(self, x, y, times) -> MatchResult:
         """Maps x -> y, y -> x and the deformation of x at ``times (T,)`` (any finite values)."""
@@ -354,7 +608,8 @@ class DivFreeMatcher:
             moved, p2p, p2p_inv = self._maps(fit, x, y)
             frames = self._frames(fit, x, times.to(moved.device))
         extras = {"coeffs": fit["coeffs"].cpu(), "energies": fit["energies"], "history": fit["history"],
-                  "fit_seconds": fit["seconds"]}
+                  "fit_seconds": fit["seconds"], "prealign_rotation": fit["rotation"].cpu(),
+                  "prealign_scores": fit["prealign_scores"]}
         return MatchResult(p2p=p2p, p2p_inv=p2p_inv, deformation=frames.to(x.verts.dtype),
                            times=times.to(frames.device), extras=extras)
 

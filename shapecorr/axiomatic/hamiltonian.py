@@ -116,7 +116,7 @@ class HamiltonianConfig:
     extrapolate_velocity: bool = True
     ridge: float = PUBLISHED_RIDGE
     margin: float = df.BOX_MARGIN
-    convention: str = "published"
+    convention: str = "original_code"
     learn_anisotropy: bool = True
     learn_inertia: bool = True
     align_tolerance: float = ALIGN_TOLERANCE

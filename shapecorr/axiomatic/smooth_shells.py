@@ -125,6 +125,10 @@ class SmoothShellsConfig:
         Score all combinations of the two candidate sets together (2 x 4 = 8 surrogate runs) instead of the
         original's greedy sequence (2 + 4), which misses a half turn about the 2nd principal axis when the
         first set's choice is wrong (project option, docs/smooth_shells.md §6; default: the original).
+    rigid_keep_input : bool
+        Score X's input orientation (only re-centred) by a surrogate run as well, and keep it when it scores
+        lower than the rigid stage's choice (project option; the divergence-free matcher's pre-alignment uses it,
+        docs/divfree.md §1; default: the original).
     icp_iterations : int
         Axis-ICP iterations (5 x 10).
     mcmc_batch : int
@@ -158,6 +162,7 @@ class SmoothShellsConfig:
     rigid_rotations: tuple[int, ...] = (2, 4)
     score_descriptors: float = 0.0
     rigid_joint: bool = False
+    rigid_keep_input: bool = False
     icp_iterations: int = 50
     mcmc_batch: int = 16
     seed: int = 0
@@ -1083,6 +1088,12 @@ def rigid_alignment(x: ShellsShape, y: ShellsShape, config: SmoothShellsConfig =
             scores, poses = evaluate(turns, rot, trans)
             rot, trans = poses[int(torch.argmin(scores))]
             all_scores.append(scores.cpu())
+    if config.rigid_keep_input:
+        eye = torch.eye(3, dtype=torch.float64, device=dev)
+        scores, poses = evaluate([eye], eye, torch.zeros(3, dtype=torch.float64, device=dev))
+        all_scores.append(scores.cpu())
+        if float(scores[0]) < float(all_scores[-2].min()):
+            rot, trans = poses[0]
     return rot.to(dtype), trans.to(dtype), all_scores
 
 

@@ -9,8 +9,11 @@ import trimesh
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
-from shapecorr.axiomatic.divfree import DivFreeMatcher, knn_graph_edges
+from shapecorr.axiomatic.divfree import (
+    DivFreeMatcher, knn_graph_edges, orientation_candidates, principal_frame, rigid_icp,
+)
 from shapecorr.data.datasets import ShapeSample
 from shapecorr.data.shape import make_shape
 from shapecorr.errors import ConfigError
@@ -60,8 +63,9 @@ def rigid_pair():
 
 @pytest.fixture(scope="module")
 def rigid_result(rigid_pair):
+    """The flow alone (no pre-alignment) recovers the small rotation."""
     x, y, _ = rigid_pair
-    return DivFreeMatcher(**FAST).match(x, y)
+    return DivFreeMatcher(**FAST, prealign="none").match(x, y)
 
 
 def test_rigid_motion_recovered(rigid_pair, rigid_result):
@@ -77,7 +81,7 @@ def test_rigid_motion_recovered(rigid_pair, rigid_result):
     frame = r.deformation[-1].numpy()
     assert np.linalg.norm(frame - vy[perm], axis=1).mean() / scale < 0.01
     # without optimization (identity flow) the same product space gets it wrong: the test can fail
-    r0 = DivFreeMatcher(**{**FAST, "iterations": (0, 0)}).match(x, y)
+    r0 = DivFreeMatcher(**{**FAST, "iterations": (0, 0)}, prealign="none").match(x, y)
     err0 = np.linalg.norm(vy[r0.p2p.numpy()] - vy[perm], axis=1) / scale
     assert err0.mean() > 3 * err.mean() + 0.005
     assert r.extras["fit_seconds"] < 30  # measured ~3-8 s on a shared 2-core CPU
@@ -93,7 +97,7 @@ def test_frames_and_volume(rigid_pair, rigid_result):
     for frame in r.deformation[1:]:
         assert abs(relative_volume_change(x.verts.numpy(), faces, frame.numpy())) < 0.01
     # interpolate() at other times, extrapolating, gives the same maps
-    matcher = DivFreeMatcher(**FAST)
+    matcher = DivFreeMatcher(**FAST, prealign="none")
     r2 = matcher.interpolate(x, y, [0.0, 0.5, 1.0, 1.5])
     assert r2.deformation.shape[0] == 4
     assert torch.equal(r2.p2p, r.p2p)
@@ -102,7 +106,7 @@ def test_frames_and_volume(rigid_pair, rigid_result):
 
 def test_deterministic(rigid_pair, rigid_result):
     x, y, _ = rigid_pair
-    again = DivFreeMatcher(**FAST).match(x, y)
+    again = DivFreeMatcher(**FAST, prealign="none").match(x, y)
     assert torch.equal(again.p2p, rigid_result.p2p) and torch.equal(again.p2p_inv, rigid_result.p2p_inv)
     torch.testing.assert_close(again.extras["coeffs"], rigid_result.extras["coeffs"], atol=0, rtol=0)
 
@@ -111,7 +115,7 @@ def test_remeshed_self_match():
     vx, fx = _blob(300)
     vy, fy = _blob(450)  # the same surface, another triangulation
     x, y = _sample(vx, fx, "x"), _sample(vy, fy, "y")
-    r = DivFreeMatcher(**FAST).match(x, y)
+    r = DivFreeMatcher(**FAST, prealign="none").match(x, y)
     scale = np.sqrt(surface_area(vy, fy))
     spacing = cKDTree(vy).query(vx)[0].mean() / scale  # error of the best vertex-to-vertex map
     err = np.linalg.norm(vy[r.p2p.numpy()] - vx, axis=1) / scale
@@ -126,7 +130,9 @@ def test_config_has_published_defaults():
     finest = matcher.levels[-1]
     assert (finest.n_modes, finest.n_samples, finest.iterations) == (8, 2000, 100)
     assert (matcher.n_steps, matcher.lambda_reg, matcher.knn, matcher.margin) == (16, 20.0, 5, 0.05)
-    assert matcher.required_operators == {"shot": {}}
+    assert matcher.prealign == "smooth_shells"
+    assert matcher.required_operators == {"shot": {}, "eigenbasis": {"k": 509}}
+    assert DivFreeMatcher(prealign="pca").required_operators == {"shot": {}}
 
 
 def test_bad_input(rigid_pair):
@@ -135,6 +141,8 @@ def test_bad_input(rigid_pair):
         DivFreeMatcher(modes=(2, 4), samples=(100, 200, 300))
     with pytest.raises(ConfigError):
         DivFreeMatcher(rule="euler")
+    with pytest.raises(ConfigError, match="prealign"):
+        DivFreeMatcher(prealign="icp")
     no_shot = ShapeSample(shape=x.shape, evals=x.evals, evecs=x.evecs, mass=x.mass)
     with pytest.raises(ConfigError, match="shot"):
         DivFreeMatcher(**FAST).match(no_shot, y)
@@ -146,3 +154,80 @@ def test_knn_graph_edges():
     assert (edges[:, 0] < edges[:, 1]).all()
     assert counts.sum() == 50 * 5  # every directed neighbour listed once
     assert set(counts.tolist()) <= {1.0, 2.0}
+
+
+def _random_rotation(seed):
+    q = np.random.default_rng(seed).normal(size=4)
+    return torch.from_numpy(Rotation.from_quat(q / np.linalg.norm(q)).as_matrix())
+
+
+@pytest.mark.parametrize("mode", ["pca", "pca_turns"])
+def test_orientation_candidates_contain_the_rotation(mode):
+    v, _ = _blob(300)
+    x = torch.tensor(v, dtype=torch.float64)
+    rot = _random_rotation(3)
+    y = (x - x.mean(0)) @ rot.T + torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64)
+    cands = orientation_candidates(x, y, mode)
+    assert cands.shape == ((4 if mode == "pca" else 8), 3, 3)
+    torch.testing.assert_close(torch.linalg.det(cands), torch.ones(len(cands), dtype=torch.float64))
+    errors = [float(((x - x.mean(0)) @ c.T + y.mean(0) - y).norm(dim=1).max()) for c in cands]
+    assert min(errors) < 1e-6 and sorted(errors)[1] > 0.1  # exactly one candidate is the rotation
+    mean, axes = principal_frame(y)
+    torch.testing.assert_close(mean, y.mean(0))
+    torch.testing.assert_close(axes.T @ axes, torch.eye(3, dtype=torch.float64))
+
+
+def test_pca_turns_contain_pca_and_the_quarter_turns():
+    v, _ = _blob(300)
+    x = torch.tensor(v, dtype=torch.float64)
+    y = x @ _random_rotation(7).T
+    pca, turns = orientation_candidates(x, y, "pca"), orientation_candidates(x, y, "pca_turns")
+    assert all(min(float((c - t).abs().max()) for t in turns) < 1e-12 for c in pca)
+    # turns[k] = turns[0] followed by k quarter turns about y's first principal axis
+    axis = principal_frame(y)[1][:, 0]
+    for k in range(1, 4):
+        rel = turns[k] @ turns[0].T
+        torch.testing.assert_close(rel @ axis, axis)
+        assert abs(float(torch.trace(rel)) - (1 + 2 * np.cos(k * np.pi / 2))) < 1e-9
+
+
+def test_prealignment_recovers_a_large_turn():
+    v, f = _blob(300)
+    perm = np.random.default_rng(1).permutation(len(v))
+    rot = _random_rotation(5).numpy()
+    vy = np.empty_like(v)
+    vy[perm] = v @ rot.T + [0.2, 0.1, -0.1]
+    x, y = _sample(v, f, "x"), _sample(vy, perm[f], "y")
+    scale = np.sqrt(surface_area(vy, y.faces.numpy()))
+    r = DivFreeMatcher(**FAST, prealign="pca_turns").match(x, y)
+    err = np.linalg.norm(vy[r.p2p.numpy()] - vy[perm], axis=1) / scale
+    assert (r.p2p.numpy() == perm).mean() > 0.9 and err.mean() < 0.01
+    # frames: x as given at t = 0, on y at t = 1, the volume kept in between
+    torch.testing.assert_close(r.deformation[0], x.verts, atol=1e-5, rtol=0)
+    assert np.linalg.norm(r.deformation[-1].numpy() - vy[perm], axis=1).mean() / scale < 0.01
+    for frame in r.deformation[1:]:
+        assert abs(relative_volume_change(x.verts.numpy(), f, frame.numpy())) < 0.01
+    assert len(r.extras["prealign_scores"]) == 8
+    # without the pre-alignment the flow cannot turn the shape that far: the test can fail
+    r0 = DivFreeMatcher(**FAST, prealign="none").match(x, y)
+    err0 = np.linalg.norm(vy[r0.p2p.numpy()] - vy[perm], axis=1) / scale
+    assert err0.mean() > 5 * err.mean() + 0.05
+
+
+def test_rigid_icp_recovers_a_rigid_motion():
+    v, f = _blob(300)
+    x = torch.tensor(v, dtype=torch.float64)
+    nx = torch.tensor(trimesh.Trimesh(v, f, process=False).vertex_normals.copy())
+    rot = torch.from_numpy(Rotation.from_rotvec([0.03, -0.05, 0.04]).as_matrix())
+    shift = torch.tensor([0.02, 0.0, -0.01], dtype=torch.float64)
+    perm = torch.from_numpy(np.random.default_rng(2).permutation(len(v)))
+    y, ny = (x @ rot.T + shift)[perm], (nx @ rot.T)[perm]
+    r, t = rigid_icp(x, nx, y, ny, iterations=50, normal_weight=0.1)
+    torch.testing.assert_close(r, rot, atol=1e-6, rtol=0)
+    torch.testing.assert_close(t, shift, atol=1e-6, rtol=0)
+    # descriptors that identify the points pair them from the start: one step recovers a large turn
+    big = torch.from_numpy(Rotation.from_rotvec([0.0, 0.0, 2.5]).as_matrix())
+    feats = torch.eye(len(v), dtype=torch.float64) * 10.0
+    r, _ = rigid_icp(x, nx, (x @ big.T)[perm], (nx @ big.T)[perm], iterations=3, features_x=feats,
+                     features_y=feats[perm])
+    torch.testing.assert_close(r, big, atol=1e-6, rtol=0)

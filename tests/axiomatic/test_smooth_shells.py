@@ -268,3 +268,22 @@ def test_batched_nearest_neighbours_backends_agree():
                 assert torch.equal(_nearest(queries[:1], points, backend=backend), shared_queries)
     finally:
         torch.set_num_threads(threads)
+
+
+def test_rigid_keep_input_scores_the_input_orientation(base):
+    rng = np.random.default_rng(5)
+    x = base["x"]
+    config = replace(SMALL, score_descriptors=0.3, rigid_keep_input=True)
+    # an already aligned copy: the input orientation scores lowest and is kept exactly
+    same = _permuted_copy(base, np.eye(3), np.zeros(3), rng, "blob_same")
+    rot, _, scores = rigid_alignment(x, same["y"], config, basis_features(x, same["y"]))
+    assert [len(s) for s in scores] == [*SMALL.rigid_rotations, 1]
+    assert torch.equal(rot.to(torch.float64), torch.eye(3, dtype=torch.float64))
+    # a half turn: the input orientation is scored but loses to the rigid stage's pose
+    centred = base["verts"] - base["verts"].mean(0)
+    axis = np.linalg.svd(centred, full_matrices=False)[2][2]
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    turned = _permuted_copy(base, np.eye(3) + 2 * k @ k, np.zeros(3), rng, "blob_turned")
+    rot, _, scores = rigid_alignment(x, turned["y"], config, basis_features(x, turned["y"]))
+    assert float(scores[-1][0]) > float(scores[-2].min())
+    assert not torch.equal(rot.to(torch.float64), torch.eye(3, dtype=torch.float64))

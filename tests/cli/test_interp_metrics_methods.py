@@ -31,7 +31,7 @@ METHODS = {
                    "model.backbone.n_blocks=2", "model.interpolation_net.hidden_channels=8",
                    "model.interpolation_net.n_blocks=2"],
     "divfree": ["model=divfree", "model.modes=[2]", "model.samples=[60]", "model.iterations=[3]", "model.lr=[0.01]",
-                "model.descriptor_weight=[0]", "model.n_steps=4"],
+                "model.descriptor_weight=[0]", "model.n_steps=4", "model.prealign=none"],
     "hamiltonian": ["model=hamiltonian", "model.n_modes=2", "model.iterations=3", "model.samples=60",
                     "model.n_steps=4"],
     # the ground-truth map: a map with collapses (descriptor NN) flattens X(1) to zero volume (no volume score)
