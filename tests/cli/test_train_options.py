@@ -112,8 +112,17 @@ def test_a_model_without_parameters_is_refused_before_any_data_work(tmp_path, ca
     assert not (tmp_path / "cache" / "synthetic").exists()
 
 
+@pytest.mark.parametrize("terminal", [True, False])
+def test_plain_progress_only_without_a_terminal(tmp_path, _cfg, monkeypatch, terminal):
+    from shapecorr.cli.plain_progress import PlainProgress
+
+    monkeypatch.setattr("shapecorr.cli.train.stdout_is_terminal", lambda: terminal)
+    callbacks = build_callbacks(_cfg(tmp_path, "logger=none"), tmp_path)
+    assert any(isinstance(c, PlainProgress) for c in callbacks) is not terminal
+
+
 def test_logger_none_disables_logging_but_keeps_checkpoints(tmp_path, _cfg, monkeypatch):
-    # on a terminal: no plain-progress callback either (tests/cli/test_run_log.py covers that one)
+    # on a terminal: no plain-progress callback either (test_plain_progress_only_without_a_terminal)
     monkeypatch.setattr("shapecorr.cli.train.stdout_is_terminal", lambda: True)
     for option in ("logger=none", "~logger"):
         cfg = _cfg(tmp_path, option)
