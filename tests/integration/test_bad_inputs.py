@@ -205,8 +205,8 @@ def test_multi_component_shape_in_multi_shape_matching_fails_before_the_work(wor
                np.vstack([f, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]) + len(v)]))
     out = tmp_path / "out"
     with pytest.warns(MeshWarning):
-        line = _error(world[2](out, "model=gmsm", data_root=root), capsys)
-    assert f"{root / 'off' / 'c.off'} (2 components)" in line and "matching=pairwise" in line
+        line = _error(world[2](out, "model=gmsm", "multishape=graph", data_root=root), capsys)
+    assert f"{root / 'off' / 'c.off'} (2 components)" in line and "without multishape=" in line
     assert not (out / "graph_queries").exists()
 
 
