@@ -158,8 +158,11 @@ def write_interp_overlay(path: str | os.PathLike, runs: Sequence[compare.Run]) -
 
 def write_examples_grid(path: str | os.PathLike, runs: Sequence[compare.Run], examples: Sequence[tuple[str, str]],
                         meshes: Mapping[str, tuple[np.ndarray, np.ndarray]], view) -> Path | None:
-    """The example pairs side by side: the first row the targets (coordinate colours), then one row per run
-    with the source coloured through that run's map (grey where a run has no map for the pair)."""
+    """The example pairs side by side, rendered as ``evaluate.py``'s ``examples/``.
+
+    The first row shows the targets (coordinate colours), then one row per run the source coloured through
+    that run's map (grey where a run has no map for the pair).
+    """
     if not examples or not runs:
         return None
     rows, cols = len(runs) + 1, len(examples)
