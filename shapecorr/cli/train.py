@@ -29,6 +29,7 @@ from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
 from pytorch_lightning.utilities.exceptions import MisconfigurationException
 
 from shapecorr.cli.common import exit_on_user_error, user_config_error
+from shapecorr.cli.run_metrics import finish_training_run
 from shapecorr.data.operators import required_request
 from shapecorr.errors import ConfigError
 
@@ -164,6 +165,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         if trainer.is_global_zero and errors:
             mean = float(np.mean(np.concatenate(errors)))
             result.update(test_error=mean, test_pairs=len(errors))
+            finish_training_run(cfg, trainer, model, out_dir)  # metrics.json, hyperparameters + test metrics
             print(f"test geodesic error: {mean:.4f} (fraction of sqrt(area)) over {len(errors)} pairs", flush=True)
     return result
 

@@ -143,7 +143,8 @@ def test_cli_writes_everything_and_report_holds_the_maps(runs, tmp_path, capsys)
     page = (out / "report.html").read_text()
     assert len(re.findall(r'<tr class="run">', page)) == 4
     data = json.loads(re.search(r'<script type="application/json" id="mesh-data">(.*?)</script>', page, re.S)[1])
-    assert len(data["pairs"]) == 2 and [r["name"] for r in data["pairs"][0]["runs"]] == ["nn", "gt", "blend", "gt_blend"]
+    assert len(data["pairs"]) == 2
+    assert [r["name"] for r in data["pairs"][0]["runs"]] == ["nn", "gt", "blend", "gt_blend"]
     source, target = data["pairs"][0]["source"]["name"], data["pairs"][0]["target"]["name"]
     shown = np.frombuffer(base64.b64decode(data["pairs"][0]["runs"][0]["map"]), dtype=np.int32)
     assert shown.tolist() == np.load(map_paths(runs["nn"], source, target)[1]).tolist()
