@@ -271,10 +271,11 @@ def common_pairs(runs: Sequence[Run], allow_different_pairs: bool = False) -> tu
     if not allow_different_pairs:
         r = differing[0]
         only_a, only_b = sorted(ref_set - set(r.pairs)), sorted(set(r.pairs) - ref_set)
-        example = (only_a or only_b)[0]
+        where, example = ("first", only_a[0]) if only_a else ("second", only_b[0])
         raise ComparisonError(
             f"different pairs: {reference.path} has {len(reference.pairs)}, {r.path} has {len(r.pairs)} "
-            f"({len(only_a)} only in the first, {len(only_b)} only in the second, e.g. {example[0]} -> {example[1]}); "
+            f"({len(only_a)} only in the first, {len(only_b)} only in the second, e.g. {example[0]} -> {example[1]} "
+            f"only in the {where}); "
             f"{len(common)} in common over all runs: pass --allow-different-pairs to compare on those")
     if not common:
         raise ComparisonError("the runs have no pair in common")
