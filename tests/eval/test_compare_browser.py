@@ -19,10 +19,12 @@ import pytest
 from shapecorr.cli.compare import write_comparison
 from shapecorr.cli.evaluate import evaluate
 
-pytestmark = [pytest.mark.browser, pytest.mark.usefixtures("single_thread")]
-
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
+pytest.importorskip("selenium", reason="selenium is not installed (pip install selenium)")
+NO_BROWSER = "no chromium / chromedriver on PATH (apt-get install chromium chromium-driver)"
+pytestmark = [pytest.mark.browser, pytest.mark.usefixtures("single_thread"),
+              pytest.mark.skipif(CHROMIUM is None or CHROMEDRIVER is None, reason=NO_BROWSER)]
 #: Chromium's headless flags on machines without a display, GPU or network: software WebGL (SwiftShader),
 #: no background connections (refused on sandboxed machines), a fresh profile.
 HEADLESS_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader", "--disable-quic",
@@ -32,10 +34,8 @@ HEADLESS_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--enable-unsaf
 DRAW_TIMEOUT = 60.0
 
 
-def _driver_or_skip():
-    if CHROMIUM is None or CHROMEDRIVER is None:
-        pytest.skip("no chromium / chromedriver on PATH (apt-get install chromium chromium-driver)")
-    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed (pip install selenium)")
+def _driver():
+    from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
     options = webdriver.ChromeOptions()
@@ -62,7 +62,7 @@ def test_report_in_headless_chromium(report):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support.ui import WebDriverWait
 
-    driver = _driver_or_skip()
+    driver = _driver()
     try:
         driver.get(report.as_uri())
         WebDriverWait(driver, DRAW_TIMEOUT).until(
@@ -87,7 +87,7 @@ def test_broken_page_is_caught(tmp_path):
     """The console check can fail: a page with a script error reports it as SEVERE."""
     page = tmp_path / "broken.html"
     page.write_text("<html><body><script>undefinedFunction();</script></body></html>")
-    driver = _driver_or_skip()
+    driver = _driver()
     try:
         driver.get(page.as_uri())
         errors = [e["message"] for e in driver.get_log("browser") if e["level"] == "SEVERE"]
