@@ -1,6 +1,7 @@
 """``compare.py``: compare runs from their output folders; also what ends every multirun (docs/compare.md).
 
     python compare.py OUT1 OUT2 ... [--names a b ...] [--out DIR] [--allow-different-pairs] [--n-examples 4]
+        [--data-root DIR]
 
 Writes into ``--out`` (default: the current folder's ``comparison/``): ``comparison.csv``, ``comparison.md``,
 ``pck_overlay.png``, ``mean_error.png``, ``pairwise.png`` (two runs: scatter; more: win/loss matrix),
@@ -36,8 +37,10 @@ FIGURE_TITLES = {
 
 def write_comparison(paths: Sequence[str | Path], out_dir: str | Path, names: Sequence[str] | None = None,
                      allow_different_pairs: bool = False, n_examples: int = DEFAULT_EXAMPLES,
-                     view=DEFAULT_VIEW) -> Path:
+                     view=DEFAULT_VIEW, data_root: str | Path | None = None) -> Path:
     """Compare the run folders ``paths`` and write every output into ``out_dir``; returns ``comparison.md``.
+
+    The example meshes are read from ``data_root``, by default the runs' data folder (``run.json``).
 
     Raises
     ------
@@ -52,7 +55,7 @@ def write_comparison(paths: Sequence[str | Path], out_dir: str | Path, names: Se
     compare.write_text(out / compare.COMPARISON_CSV, compare.comparison_csv(runs))
     md = compare.write_text(out / compare.COMPARISON_MD, compare.comparison_markdown(runs, note))
     examples = figures.example_pairs(pairs, n_examples)
-    data_roots = {r.dataset for r in runs if r.has_records and r.dataset}
+    data_roots = {r.dataset for r in runs if r.has_records and r.dataset} if data_root is None else {data_root}
     meshes = {}
     if examples and len(data_roots) == 1:
         meshes = figures.load_meshes(data_roots.pop(), [s for pair in examples for s in pair])
@@ -82,6 +85,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                         help="compare runs on different pair sets on their common pairs")
     parser.add_argument("--n-examples", type=int, default=DEFAULT_EXAMPLES,
                         help="example pairs shown per run (grid and 3-D views; 0: none)")
+    parser.add_argument("--data-root", help="where the example meshes are (default: the runs' data folder, "
+                        "run.json's data_root; for runs made on another machine)")
     return parser.parse_args(argv)
 
 
@@ -94,7 +99,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         paths = compare.find_sweep_runs(paths[0])  # a sweep folder: its runs
     if len(paths) < 2:
         raise compare.ComparisonError(f"{len(paths)} run folder(s) to compare; give at least two")
-    md = write_comparison(paths, args.out, args.names, args.allow_different_pairs, args.n_examples)
+    md = write_comparison(paths, args.out, args.names, args.allow_different_pairs, args.n_examples,
+                          data_root=args.data_root)
     print(md.read_text(), end="")
     print(f"comparison written to {md.parent}", flush=True)
     return 0

@@ -121,6 +121,16 @@ document.addEventListener('DOMContentLoaded', () => {
 """
 
 
+def _plotly_bundle() -> str:
+    """plotly.js from the ``plotly`` package, or a ConfigError saying how to get it."""
+    try:
+        from plotly.offline import get_plotlyjs
+    except ImportError:
+        raise ConfigError("report.html's 3-D views need the plotly package (pip install plotly); the other "
+                          "comparison files are written") from None
+    return get_plotlyjs()
+
+
 def _b64(array: np.ndarray, dtype) -> str:
     return base64.b64encode(np.ascontiguousarray(array, dtype=dtype).tobytes()).decode("ascii")
 
@@ -199,8 +209,6 @@ def write_report_html(path: str | os.PathLike, runs: Sequence[compare.Run], figu
                       examples: Sequence[tuple[str, str]], meshes: Mapping[str, tuple[np.ndarray, np.ndarray]],
                       note: str = "") -> Path:
     """Write ``report.html`` (see the module docstring); ``figures`` maps titles to PNG files to embed."""
-    from plotly.offline import get_plotlyjs
-
     from shapecorr.eval.compare import published_rows, write_text
 
     view_runs = [r for r in runs if r.has_records]
@@ -222,7 +230,7 @@ def write_report_html(path: str | os.PathLike, runs: Sequence[compare.Run], figu
         body.append(_views(view_runs, examples))
         data = json.dumps(mesh_data(view_runs, examples, meshes)).replace("</", "<\\/")
         body.append(f'<script type="application/json" id="mesh-data">{data}</script>')
-        scripts = f"<script>{get_plotlyjs()}</script><script>{_SCRIPT}</script>"
+        scripts = f"<script>{_plotly_bundle()}</script><script>{_SCRIPT}</script>"
     else:
         scripts = f"<script>{_SCRIPT.replace('buildViews();', '')}</script>"
     page = ("<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>shapecorr comparison</title>"

@@ -20,6 +20,7 @@ import pytest
 
 from shapecorr.cli.compare import compare_sweep, main, write_comparison
 from shapecorr.cli.evaluate import evaluate
+from shapecorr.errors import MeshReadError
 from shapecorr.eval import compare
 from shapecorr.eval.export import map_paths
 
@@ -178,3 +179,11 @@ def test_write_comparison_without_examples(runs, tmp_path):
     assert md.is_file() and not (tmp_path / "examples_grid.png").exists()
     page = (tmp_path / "report.html").read_text()
     assert 'id="mesh-data"' not in page and len(page) < 200_000  # no meshes, no plotly bundle
+
+
+def test_meshes_from_another_data_root(runs, tmp_path):
+    empty = tmp_path / "elsewhere"
+    empty.mkdir()
+    with pytest.raises(MeshReadError, match="no mesh file for shape") as err:
+        write_comparison([runs["nn"], runs["gt"]], tmp_path / "cmp", n_examples=1, data_root=empty)
+    assert str(empty) in str(err.value)
