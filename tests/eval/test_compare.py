@@ -12,7 +12,10 @@ import base64
 import csv
 import json
 import re
+import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +29,7 @@ from shapecorr.eval.export import map_paths
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
+REPO = Path(__file__).resolve().parents[2]
 NAMES = ["p0", "p1", "p2"]
 RUNS = {
     "nn": ["model=descriptor_nn", "model.descriptor=hks"],
@@ -39,10 +43,15 @@ OUTPUTS = ("comparison.csv", "comparison.md", "pck_overlay.png", "mean_error.png
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory, evaluate_on_folder, bent_sphere_folder) -> dict[str, Path]:
-    """``name -> output folder`` of the four evaluations."""
-    root = bent_sphere_folder(tmp_path_factory.mktemp("compare_folder"), NAMES)
-    cache = tmp_path_factory.mktemp("compare_cache")
+def folder(tmp_path_factory, bent_sphere_folder) -> tuple[Path, Path]:
+    """``(data root, cache folder)``."""
+    return bent_sphere_folder(tmp_path_factory.mktemp("compare_folder"), NAMES), tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory, evaluate_on_folder, folder) -> dict[str, Path]:
+    """``name -> output folder`` of the evaluations of :data:`RUNS`."""
+    root, cache = folder
     base = tmp_path_factory.mktemp("compare_runs")
     out = {}
     for name, overrides in RUNS.items():
@@ -187,3 +196,22 @@ def test_meshes_from_another_data_root(runs, tmp_path):
     with pytest.raises(MeshReadError, match="no mesh file for shape") as err:
         write_comparison([runs["nn"], runs["gt"]], tmp_path / "cmp", n_examples=1, data_root=empty)
     assert str(empty) in str(err.value)
+
+
+@pytest.mark.slow
+def test_multirun_ends_with_the_comparison(folder, runs, tmp_path):
+    """``evaluate.py -m`` (a real Hydra multirun): the callback writes the comparison into the sweep folder."""
+    root, cache = folder
+    sweep = tmp_path / "sweep"
+    env = {**os.environ, "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "evaluate.py"), "-m", "model=descriptor_nn,identity_gt",
+         "data=folder", f"data.root={root}", f"paths.cache_dir={cache}", "data.operators.n_eig=30", "progress=false",
+         "n_examples=0", f"hydra.sweep.dir={sweep}"],
+        cwd=REPO, capture_output=True, text=True, timeout=600, env=env, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert f"comparison of the sweep: {sweep / 'comparison.md'}" in proc.stdout
+    rows = list(csv.DictReader((sweep / "comparison.csv").read_text().splitlines()))
+    assert [r["name"] for r in rows] == ["descriptor_nn", "identity_gt"]
+    assert float(rows[1]["mean_geodesic_error"]) == 0.0 < float(rows[0]["mean_geodesic_error"])
+    assert (sweep / "report.html").is_file() and (sweep / "pairwise.png").is_file()
