@@ -1,9 +1,9 @@
 """``report.html`` in a real browser: headless Chromium (Debian ``chromium`` + ``chromium-driver``) via Selenium.
 
 Opens the page of a comparison of two real ``evaluate.py`` runs (three bent icospheres) and checks: no console
-error, one table row per run (sorted by a click on a header), and non-blank pixels in a 3-D view's canvas (a
-screenshot of the element: the WebGL view drew the mesh, not only the page around it). Skipped, with the
-reason, where Chromium, its driver or Selenium is missing.
+error, one table row per run (sorted by a click on a header), linked cameras, and non-blank pixels in a 3-D
+view's canvas (a screenshot of the element: the WebGL view drew the mesh, not only the page around it).
+Skipped, with the reason, where Chromium, its driver or Selenium is missing.
 """
 
 from __future__ import annotations
@@ -77,6 +77,13 @@ def test_report_in_headless_chromium(report):
         coloured = (np.abs(pixels - 255).sum(axis=2) > 60)
         assert coloured.mean() > 0.05, f"only {coloured.mean():.3%} of the 3-D view is drawn"
         assert len(np.unique(pixels[coloured].reshape(-1, 3) // 32, axis=0)) > 8
+        # the views of one pair are linked: moving the target's camera moves the runs' cameras
+        eye = driver.execute_async_script("""
+            const done = arguments[arguments.length - 1];
+            const a = document.getElementById('view-0-target'), b = document.getElementById('view-0-1');
+            Plotly.relayout(a, {'scene.camera': {eye: {x: 1.5, y: 0.3, z: 0.4}}})
+              .then(() => setTimeout(() => done(b.layout.scene.camera.eye), 500));""")
+        assert eye == {"x": 1.5, "y": 0.3, "z": 0.4}
         header = driver.find_element(By.XPATH, "//table[@id='runs']//th[starts-with(., 'mean error')]")
         orders = []
         for _ in range(2):  # a click sorts ascending, the next one descending
