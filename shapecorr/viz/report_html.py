@@ -26,7 +26,7 @@ import numpy as np
 
 from shapecorr.errors import ConfigError
 from shapecorr.eval import compare
-from shapecorr.viz.compare import read_map
+from shapecorr.viz.compare import EXAMPLES_GRID_PNG, read_map
 from shapecorr.viz.render import coordinate_colors
 
 REPORT_HTML = "report.html"
@@ -44,6 +44,8 @@ td:first-child, th:first-child { text-align: left; }
 td.best { font-weight: bold; background: #e6f4e6; }
 table.published td { color: #555; font-style: italic; }
 img { max-width: 100%; border: 1px solid #ddd; margin: 0.3em; }
+.fig { display: inline-block; vertical-align: top; max-width: 32%; margin-right: 1%; }
+.fig.wide { display: block; max-width: 100%; }
 .views { display: flex; flex-wrap: wrap; }
 .view { width: 280px; height: VIEW_HEIGHTpx; margin: 2px; border: 1px solid #ddd; }
 .caption { font-size: 0.8em; text-align: center; }
@@ -191,7 +193,9 @@ def _published_table(bench: str, rows) -> str:
 
 def _image(path: Path, title: str) -> str:
     data = base64.b64encode(path.read_bytes()).decode("ascii")
-    return f'<h3>{html.escape(title)}</h3><img alt="{html.escape(title)}" src="data:image/png;base64,{data}">'
+    wide = " wide" if path.name == EXAMPLES_GRID_PNG else ""
+    return (f'<div class="fig{wide}"><h3>{html.escape(title)}</h3>'
+            f'<img alt="{html.escape(title)}" src="data:image/png;base64,{data}"></div>')
 
 
 def _views(runs: Sequence[compare.Run], examples: Sequence[tuple[str, str]]) -> str:
