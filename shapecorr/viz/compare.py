@@ -112,7 +112,9 @@ def pairwise_figure(names: Sequence[str], errors: np.ndarray) -> Figure:
         ax.grid(True, alpha=0.3)
     else:
         wins = compare.win_matrix(errors)
-        ax.imshow(wins / max(errors.shape[1], 1), cmap="RdYlGn", vmin=0.0, vmax=1.0)
+        share = wins / max(errors.shape[1], 1)
+        np.fill_diagonal(share, np.nan)  # drawn blank
+        ax.imshow(share, cmap="RdYlGn", vmin=0.0, vmax=1.0)
         for i in range(len(names)):
             for j in range(len(names)):
                 ax.text(j, i, "" if i == j else str(wins[i, j]), ha="center", va="center", fontsize="small")

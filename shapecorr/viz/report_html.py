@@ -9,8 +9,9 @@ the numbers are never computed from what is displayed.
 
 Per example pair the page shows the target (coloured by its coordinates) and, for every run, the source
 coloured through that run's map (vertex i gets the colour of its image), as :mod:`shapecorr.viz.render` does;
-the views of one pair share their camera (rotating one rotates the others). The table sorts by a click on a
-header; published rows are a separate table.
+the views share their camera (rotating one rotates the others). One pair is shown at a time, chosen in a list:
+browsers keep only ~16 WebGL contexts alive, one per view, so 4 pairs x (4 runs + target) at once would lose
+some. The table sorts by a click on a header; published rows are a separate table.
 """
 
 from __future__ import annotations
@@ -84,37 +85,45 @@ function mesh3d(verts, faces, colors) {
   return {type: 'mesh3d', x: x, y: y, z: z, i: I, j: J, k: K, vertexcolor: colors, flatshading: false,
           lighting: {ambient: 0.55, diffuse: 0.6, specular: 0.05}, hoverinfo: 'skip'};
 }
-function buildViews() {
-  const data = JSON.parse(document.getElementById('mesh-data').textContent);
+let viewData = null;
+function showPair(p) {
+  // one pair's views at a time: browsers keep only ~16 WebGL contexts alive, one per view
   const layoutBase = {margin: {l: 0, r: 0, t: 0, b: 0}, showlegend: false,
     scene: {aspectmode: 'data', xaxis: {visible: false}, yaxis: {visible: false}, zaxis: {visible: false},
             camera: {up: {x: 0, y: 1, z: 0}, eye: {x: 0, y: 0.1, z: 2.4}}}};
   const config = {displaylogo: false, responsive: false};
-  data.pairs.forEach((pair, p) => {
-    const tv = b64(pair.target.verts, Float32Array), tf = b64(pair.target.faces, Int32Array);
-    const sv = b64(pair.source.verts, Float32Array), sf = b64(pair.source.faces, Int32Array);
-    const tcol = b64(pair.target.colors, Uint8Array);
-    const tcolors = colorStrings(tcol);
-    const divs = [];
-    const target = document.getElementById(`view-${p}-target`);
-    Plotly.newPlot(target, [mesh3d(tv, tf, tcolors)], JSON.parse(JSON.stringify(layoutBase)), config);
-    divs.push(target);
-    pair.runs.forEach((run, r) => {
-      const div = document.getElementById(`view-${p}-${r}`);
-      if (run.map === null) { div.textContent = 'no map for this pair'; return; }
-      const map = b64(run.map, Int32Array), rgb = new Uint8Array(3 * map.length);
-      for (let i = 0; i < map.length; i++) for (let c = 0; c < 3; c++) rgb[3*i+c] = tcol[3*map[i]+c];
-      Plotly.newPlot(div, [mesh3d(sv, sf, colorStrings(rgb))], JSON.parse(JSON.stringify(layoutBase)), config);
-      divs.push(div);
-    });
-    let syncing = false;
-    divs.forEach(src => src.on('plotly_relayout', ev => {
-      if (syncing || !ev['scene.camera']) return;
-      syncing = true;
-      Promise.all(divs.filter(d => d !== src).map(d => Plotly.relayout(d, {'scene.camera': ev['scene.camera']})))
-        .finally(() => { syncing = false; });
-    }));
+  const pair = viewData.pairs[p];
+  document.querySelectorAll('.view').forEach(d => { Plotly.purge(d); d.textContent = ''; });
+  const tv = b64(pair.target.verts, Float32Array), tf = b64(pair.target.faces, Int32Array);
+  const sv = b64(pair.source.verts, Float32Array), sf = b64(pair.source.faces, Int32Array);
+  const tcol = b64(pair.target.colors, Uint8Array);
+  const divs = [];
+  const target = document.getElementById('view-target');
+  Plotly.newPlot(target, [mesh3d(tv, tf, colorStrings(tcol))], JSON.parse(JSON.stringify(layoutBase)), config);
+  divs.push(target);
+  document.getElementById('caption-target').textContent = `target ${pair.target.name}`;
+  pair.runs.forEach((run, r) => {
+    const div = document.getElementById(`view-${r}`);
+    document.getElementById(`caption-${r}`).textContent = `${run.name}: ${pair.source.name}`;
+    if (run.map === null) { div.textContent = 'no map for this pair'; return; }
+    const map = b64(run.map, Int32Array), rgb = new Uint8Array(3 * map.length);
+    for (let i = 0; i < map.length; i++) for (let c = 0; c < 3; c++) rgb[3*i+c] = tcol[3*map[i]+c];
+    Plotly.newPlot(div, [mesh3d(sv, sf, colorStrings(rgb))], JSON.parse(JSON.stringify(layoutBase)), config);
+    divs.push(div);
   });
+  let syncing = false;
+  divs.forEach(src => src.on('plotly_relayout', ev => {
+    if (syncing || !ev['scene.camera']) return;
+    syncing = true;
+    Promise.all(divs.filter(d => d !== src).map(d => Plotly.relayout(d, {'scene.camera': ev['scene.camera']})))
+      .finally(() => { syncing = false; });
+  }));
+}
+function buildViews() {
+  viewData = JSON.parse(document.getElementById('mesh-data').textContent);
+  const select = document.getElementById('pair-select');
+  select.addEventListener('change', () => showPair(Number(select.value)));
+  showPair(0);
 }
 document.addEventListener('DOMContentLoaded', () => {
   document.querySelectorAll('th').forEach(th => th.addEventListener('click', () => sortTable(th)));
@@ -199,14 +208,13 @@ def _image(path: Path, title: str) -> str:
 
 
 def _views(runs: Sequence[compare.Run], examples: Sequence[tuple[str, str]]) -> str:
-    parts = []
-    for p, (x, y) in enumerate(examples):
-        cells = [f'<div><div class="view" id="view-{p}-target"></div><div class="caption">target '
-                 f"{html.escape(y)}</div></div>"]
-        cells += [f'<div><div class="view" id="view-{p}-{r}"></div><div class="caption">{html.escape(run.name)}: '
-                  f"{html.escape(x)}</div></div>" for r, run in enumerate(runs)]
-        parts.append(f"<h3>{html.escape(x)} &rarr; {html.escape(y)}</h3><div class=\"views\">{''.join(cells)}</div>")
-    return "".join(parts)
+    options = "".join(f'<option value="{p}">{html.escape(x)} &rarr; {html.escape(y)}</option>'
+                      for p, (x, y) in enumerate(examples))
+    cells = ['<div><div class="view" id="view-target"></div><div class="caption" id="caption-target"></div></div>']
+    cells += [f'<div><div class="view" id="view-{r}"></div><div class="caption" id="caption-{r}"></div></div>'
+              for r in range(len(runs))]
+    return (f'<p>Example pair: <select id="pair-select">{options}</select></p>'
+            f'<div class="views">{"".join(cells)}</div>')
 
 
 def write_report_html(path: str | os.PathLike, runs: Sequence[compare.Run], figures: Mapping[str, Path],
@@ -228,7 +236,7 @@ def write_report_html(path: str | os.PathLike, runs: Sequence[compare.Run], figu
     body.append(_published_table(bench, published))
     body += [_image(p, title) for title, p in figures.items()]
     if examples and view_runs:
-        body.append("<h2>Example pairs (drag to rotate, scroll to zoom; the views of a pair move together)</h2>")
+        body.append("<h2>Example pairs (drag to rotate, scroll to zoom; the views move together)</h2>")
         body.append("<p>Target coloured by its coordinates; each run's source coloured through its map (vertex i "
                     "takes the colour of its image).</p>")
         body.append(_views(view_runs, examples))

@@ -60,17 +60,17 @@ def report(tmp_path_factory, evaluate_on_folder, bent_sphere_folder):
 def test_report_in_headless_chromium(report):
     from PIL import Image
     from selenium.webdriver.common.by import By
-    from selenium.webdriver.support.ui import WebDriverWait
+    from selenium.webdriver.support.ui import Select, WebDriverWait
 
     driver = _driver()
     try:
         driver.get(report.as_uri())
         WebDriverWait(driver, DRAW_TIMEOUT).until(
-            lambda d: len(d.find_elements(By.CSS_SELECTOR, "#view-0-0 canvas")) > 0)
+            lambda d: len(d.find_elements(By.CSS_SELECTOR, "#view-0 canvas")) > 0)
         time.sleep(1.0)  # the first frame of the WebGL scene
         rows = driver.find_elements(By.CSS_SELECTOR, "#runs tbody tr")
         assert [r.find_elements(By.TAG_NAME, "td")[0].text for r in rows] == ["nn", "gt"]
-        view = driver.find_element(By.ID, "view-0-0")
+        view = driver.find_element(By.ID, "view-0")
         driver.execute_script("arguments[0].scrollIntoView()", view)
         pixels = np.asarray(Image.open(io.BytesIO(view.screenshot_as_png)).convert("RGB"), dtype=np.int16)
         # the mesh, not the white background: many pixels far from white and several distinct colours
@@ -80,10 +80,15 @@ def test_report_in_headless_chromium(report):
         # the views of one pair are linked: moving the target's camera moves the runs' cameras
         eye = driver.execute_async_script("""
             const done = arguments[arguments.length - 1];
-            const a = document.getElementById('view-0-target'), b = document.getElementById('view-0-1');
+            const a = document.getElementById('view-target'), b = document.getElementById('view-1');
             Plotly.relayout(a, {'scene.camera': {eye: {x: 1.5, y: 0.3, z: 0.4}}})
               .then(() => setTimeout(() => done(b.layout.scene.camera.eye), 500));""")
         assert eye == {"x": 1.5, "y": 0.3, "z": 0.4}
+        # another example pair from the list: the same views redrawn for it
+        first = driver.find_element(By.ID, "caption-0").text
+        Select(driver.find_element(By.ID, "pair-select")).select_by_index(1)
+        WebDriverWait(driver, DRAW_TIMEOUT).until(lambda d: d.find_element(By.ID, "caption-0").text != first)
+        assert len(driver.find_elements(By.CSS_SELECTOR, "#view-0 canvas")) > 0
         header = driver.find_element(By.XPATH, "//table[@id='runs']//th[starts-with(., 'mean error')]")
         orders = []
         for _ in range(2):  # a click sorts ascending, the next one descending
