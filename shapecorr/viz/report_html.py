@@ -48,7 +48,7 @@ img { max-width: 100%; border: 1px solid #ddd; margin: 0.3em; }
 .fig { display: inline-block; vertical-align: top; max-width: 32%; margin-right: 1%; }
 .fig.wide { display: block; max-width: 100%; }
 .views { display: flex; flex-wrap: wrap; }
-.view { width: 280px; height: VIEW_HEIGHTpx; margin: 2px; border: 1px solid #ddd; }
+.view { width: 250px; height: VIEW_HEIGHTpx; margin: 2px; border: 1px solid #ddd; }
 .caption { font-size: 0.8em; text-align: center; }
 """.replace("VIEW_HEIGHT", str(VIEW_HEIGHT))
 
