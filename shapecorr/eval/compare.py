@@ -88,7 +88,7 @@ COLUMNS = (
 )
 
 #: Published mean geodesic errors (x100 as printed, fractions here) per benchmark, as recorded in the docs
-#: (/docs/compare.md lists the sources): (method, mean error, source).
+#: (docs/compare.md §4 lists them): (method, mean error as a fraction, source).
 PUBLISHED: dict[str, tuple[tuple[str, float, str], ...]] = {
     "faust_r": (
         ("Deep Shells", 0.017, "Eisenberger et al., NeurIPS 2020 (docs/deep_shells.md)"),
