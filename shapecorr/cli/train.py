@@ -34,6 +34,7 @@ from pytorch_lightning.utilities.exceptions import MisconfigurationException
 from shapecorr.cli.common import check_output_dir, exit_on_user_error, user_config_error
 from shapecorr.cli.plain_progress import PlainProgress
 from shapecorr.cli.run_log import stdout_is_terminal
+from shapecorr.cli.run_metrics import finish_training_run
 from shapecorr.cli.threads import configure_threads
 from shapecorr.data.operators import required_request
 from shapecorr.errors import ConfigError
@@ -188,6 +189,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         if trainer.is_global_zero and errors:
             mean = float(np.mean(np.concatenate(errors)))
             result.update(test_error=mean, test_pairs=len(errors))
+            finish_training_run(cfg, trainer, model, out_dir)  # metrics.json, hyperparameters + test metrics
             print(f"test geodesic error: {mean:.4f} (fraction of sqrt(area)) over {len(errors)} pairs", flush=True)
     # on stderr: the test error stays the last line of stdout
     print(f"output folder: {out_dir} (checkpoints/, train.log)", file=sys.stderr, flush=True)
