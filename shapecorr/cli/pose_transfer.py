@@ -30,6 +30,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
+from shapecorr.cli.matcher_factory import build_matcher, interp_times_option, resolve_device
 from shapecorr.data.cache import ShapeCache, default_cache_root
 from shapecorr.data.datamodule import ShapePairDataModule
 from shapecorr.data.datasets import (
@@ -171,12 +172,6 @@ def _required_option(cfg: DictConfig, key: str, what: str) -> Path:
 
 def run_pose_transfer(cfg: DictConfig) -> dict[str, Any]:
     """``evaluate.py task=pose_transfer`` (see the module docstring); prints and returns the written paths."""
-    from shapecorr.cli.evaluate import (
-        build_matcher,
-        interp_times_option,
-        resolve_device,
-    )
-
     source = _required_option(cfg, "source", "the shape whose identity is kept")
     target = _required_option(cfg, "target", "the shape whose pose is taken")
     interp_times = interp_times_option(cfg)

@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shapecorr.cli.evaluate import build_matcher, evaluate, with_interpolator
+from shapecorr.cli.evaluate import evaluate
+from shapecorr.cli.matcher_factory import build_matcher, with_interpolator
 from shapecorr.data.io import read_mesh
 from shapecorr.errors import ConfigError
 from shapecorr.eval.export import read_times
