@@ -23,9 +23,9 @@ Options: ``configs/evaluate.yaml``. Steps of ``task=match`` (the default):
 
 Interpolating matchers (those with an ``interpolate(x, y, times)`` method, e.g. NeuroMorph or
 ``model=linear_blend``, or any matcher with ``interpolator=linear_blend | hamiltonian``: see
-:func:`~shapecorr.cli.matcher_factory.with_interpolator`) are called at ``interp_times`` (default
-``[0, 0.25, 0.5, 0.75, 1]``; values > 1 extrapolate; ``null`` = the matcher's own default frames). Each pair's
-frames are written (``write_interp``) as ``OUT/interp/<x>__<y>/t_XX.ply`` (XX = index into ``interp_times``, in x's input units) with
+:func:`.with_interpolator`) are called at ``interp_times`` (default ``[0, 0.25, 0.5, 0.75, 1]``; values > 1
+extrapolate; ``null`` = the matcher's own default frames). Each pair's frames are written (``write_interp``)
+as ``OUT/interp/<x>__<y>/t_XX.ply`` (XX = index into ``interp_times``, in x's input units) with
 ``times.txt`` (line XX = time of t_XX). The metrics compare the frame at t = 1 with y (Chamfer distance,
 fractions of sqrt(area(y))) and average the conformal distortion along the sequence over the frames with
 0 <= t <= 1; when 1 is not among ``interp_times`` it is evaluated as well for the metrics but not written.
