@@ -75,6 +75,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from shapecorr.cli.common import EXIT_INTERRUPTED, check_output_dir, exit_on_user_error, user_config_error
 from shapecorr.cli.matcher_factory import build_matcher, interp_times_option, interpolator_config, resolve_device
+from shapecorr.cli.pose_transfer import run_pose_transfer
 from shapecorr.data.cache import atomic_open
 from shapecorr.data.datasets import PairDataset, check_pair_names, pair_name
 from shapecorr.data.operators import required_request
@@ -305,8 +306,6 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     """
     try:
         if task_option(cfg) == "pose_transfer":
-            from shapecorr.cli.pose_transfer import run_pose_transfer
-
             return run_pose_transfer(cfg)
         out_dir = check_output_dir(Path(str(cfg.output_dir)), "output_dir=DIR")  # before any work
         device = resolve_device(str(cfg.device))
