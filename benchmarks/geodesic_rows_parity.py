@@ -47,7 +47,7 @@ def main() -> None:
 
     cache = args.cache or tempfile.mkdtemp(prefix="shapecorr_rows_")
     shapes = ShapeDataset(args.faust_r, index_range=[FIRST_TEST, FIRST_TEST + args.shapes],
-                          operators=OperatorConfig(descriptors=("wks",)), cache_dir=cache)
+                          operators=OperatorConfig(request={"eigenbasis": {"k": 200}, "wks": {}}), cache_dir=cache)
     matcher = DescriptorNN(descriptor="wks")
     full, rows, t_full, t_rows = {}, {}, [], []
     for j in range(len(shapes)):
