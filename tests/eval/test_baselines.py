@@ -66,7 +66,11 @@ def test_identity_gt_conflicting_ground_truth_keeps_first():
 
     def sample(name, corres):
         shape = make_shape(verts, faces, name, normalization=None)
-        return ShapeSample(shape, torch.zeros(1), torch.ones(4, 1), torch.ones(4), corres=torch.tensor(corres))
+        return ShapeSample(
+            shape=shape,
+            operators={"eigenbasis": {"evals": torch.zeros(1), "evecs": torch.ones(4, 1), "mass": torch.ones(4)}},
+            corres=torch.tensor(corres),
+        )
 
     x, y = sample("x", [0, 0, 1]), sample("y", [2, 3, 1])
     p2p = IdentityGT().match(x, y).p2p
