@@ -114,7 +114,7 @@ def test_descriptor_nn_errors(spheres):
         DescriptorNN(normalize="whiten")
     with pytest.raises(ConfigError, match="no 'hks' descriptor"):
         DescriptorNN("hks").match(spheres[0], spheres[1])
-    bad = replace(spheres[0], features={"wks": torch.full((162, 8), float("nan"))})
+    bad = replace(spheres[0], operators={**spheres[0].operators, "wks": {"wks": torch.full((162, 8), float("nan"))}})
     with pytest.raises(NumericalError, match="NaN"):
         DescriptorNN("wks").match(bad, spheres[1])
 
@@ -148,8 +148,8 @@ def test_descriptor_nn_backends_agree_at_input_resolution(spheres, dim):
     g = torch.Generator().manual_seed(1)
     fx = torch.randn(x.shape.n_verts, dim, generator=g)
     fy = torch.randn(y.shape.n_verts, dim, generator=g)
-    x = replace(x, features={**x.features, "hks": fx})
-    y = replace(y, features={**y.features, "hks": fy})
+    x = replace(x, operators={**x.operators, "hks": {"hks": fx}})
+    y = replace(y, operators={**y.operators, "hks": {"hks": fy}})
     dense = torch.cdist(fx.double(), fy.double())
     for backend, chunk in (("auto", 1024), ("kdtree", 1024), ("brute", 7)):
         result = DescriptorNN("hks", backend=backend, chunk_rows=chunk).match(x, y)
