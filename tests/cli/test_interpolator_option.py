@@ -1,4 +1,4 @@
-"""``evaluate.py interpolator=<name>`` (issue 16): an interpolator on top of any model's maps.
+"""``evaluate.py interpolator=<name>``: an interpolator on top of any model's maps.
 
 A tiny FAUST-style folder: two bent, vertex-permuted icospheres (162 vertices) in different units, with ``.vts``
 ground truth on every vertex, evaluated on one pair through ``evaluate()`` (the function ``evaluate.py`` calls).

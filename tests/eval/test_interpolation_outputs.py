@@ -1,4 +1,4 @@
-"""Interpolation outputs (issue 6): sequence files, interpolation times, deformation metrics, LinearBlend.
+"""Interpolation outputs: sequence files, interpolation times, deformation metrics, LinearBlend.
 
 Uses the sphere dataset of tests/eval/conftest.py (permuted, rotated unit icospheres, 162 vertices).
 """
