@@ -274,7 +274,7 @@ class NeuroMorph(CorrespondenceModule):
 
     @property
     def backbone(self) -> Backbone:
-        """The feature extractor (stored as ``feature_net``: parameter names of older checkpoints)."""
+        """The feature extractor (stored as ``feature_net``: the parameter names in checkpoints)."""
         return self.feature_net
 
     # -- scheduled settings -------------------------------------------------------------------------------
