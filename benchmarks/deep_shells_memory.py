@@ -71,10 +71,14 @@ def load_samples(golden: Path, device):
         samples.append(ShapeSample(
             # the golden vertices are already normalized (area 0.44, the original convention): keep them
             shape=make_shape(inputs[f"{side}_verts"], inputs[f"{side}_faces"], name, normalization=None),
-            evals=torch.from_numpy(inputs[f"{side}_evals"]) / ORIGINAL_EIGENVALUE_FACTOR,
-            evecs=torch.from_numpy(inputs[f"{side}_evecs"]),
-            mass=torch.from_numpy(inputs[f"{side}_mass"]),
-            features={"shot": torch.from_numpy(inputs[f"{side}_shot"])},
+            operators={
+                "eigenbasis": {
+                    "evals": torch.from_numpy(inputs[f"{side}_evals"]) / ORIGINAL_EIGENVALUE_FACTOR,
+                    "evecs": torch.from_numpy(inputs[f"{side}_evecs"]),
+                    "mass": torch.from_numpy(inputs[f"{side}_mass"]),
+                },
+                "shot": {"shot": torch.from_numpy(inputs[f"{side}_shot"])},
+            },
         ))
     return PairSample(*samples).to(device)
 

@@ -2,10 +2,10 @@
 
     python benchmarks/geodesic_rows_parity.py --faust-r /path/to/FAUST_r [--shapes 6] [--cache DIR]
 
-Until issue 17 the evaluation read ``e_r = D_sym[p(gx[r]), gy[r]]`` from the cached all-pairs heat-method
-matrix ``D_sym = (D + D^T) / 2`` (n x n). It now reads ``D[gy[r], p(gx[r])]``, the row of the heat method
-from the ground-truth point (R x n, what scales to large scans). The heat method is not exactly symmetric,
-so the numbers move by its asymmetry. This script measures by how much: ``descriptor_nn`` (WKS, the
+The evaluation reads ``e_r = D[gy[r], p(gx[r])]``, the row of the heat method from the ground-truth point
+(R x n, what scales to large scans). The alternative is the cached all-pairs heat-method matrix symmetrized,
+``D_sym = (D + D^T) / 2`` (n x n), read as ``D_sym[p(gx[r]), gy[r]]``. The heat method is not exactly
+symmetric, so the two differ by its asymmetry. This script measures by how much: ``descriptor_nn`` (WKS, the
 baseline of ``benchmarks/results/eval_baselines.json``) on every ordered pair of the first ``--shapes`` FAUST_r
 test shapes, scored both ways, plus the memory and time of both geodesic quantities. Writes
 ``benchmarks/results/geodesic_rows_parity.json``.
@@ -47,7 +47,7 @@ def main() -> None:
 
     cache = args.cache or tempfile.mkdtemp(prefix="shapecorr_rows_")
     shapes = ShapeDataset(args.faust_r, index_range=[FIRST_TEST, FIRST_TEST + args.shapes],
-                          operators=OperatorConfig(descriptors=("wks",)), cache_dir=cache)
+                          operators=OperatorConfig(request={"eigenbasis": {"k": 200}, "wks": {}}), cache_dir=cache)
     matcher = DescriptorNN(descriptor="wks")
     full, rows, t_full, t_rows = {}, {}, [], []
     for j in range(len(shapes)):

@@ -77,7 +77,7 @@ def evaluate_method(data_overrides: list[str], model_overrides: list[str], out: 
     import hydra
     import torch
 
-    from shapecorr.cli.evaluate import build_matcher
+    from shapecorr.cli.matcher_factory import build_matcher
     from shapecorr.data.datasets import PairDataset
     from shapecorr.data.operators import required_request
     from shapecorr.eval import protocol, reports

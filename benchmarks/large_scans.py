@@ -1,4 +1,4 @@
-"""Benchmark: evaluate.py on large scans (issue 17): a ~50k-vertex and a ~150k-vertex pair.
+"""Benchmark: evaluate.py on large scans: a ~50k-vertex and a ~150k-vertex pair.
 
     python benchmarks/large_scans.py --faust-r /path/to/FAUST_r [--targets 50000 150000] [--n-ref 200]
         [--models descriptor_nn deep_shells] [--deep-shells-weights FILE] [--out FILE]

@@ -28,7 +28,7 @@ shape instead of 8, which halves the one-off remeshing/geodesics cost inside the
 the geodesic phase for 8 epochs, 1 h 55 min; its results go to ``results/neuromorph_faust_r_geodesic_map.json``.
 
 ``--interpolation`` compares, on the test pairs, NeuroMorph's interpolation at t = 0.5 with the linear blend of
-the same model's correspondence (issue 6): at the working resolution (what the network sees) with the soft target
+the same model's correspondence: at the working resolution (what the network sees) with the soft target
 ``x + t (Pi y - x)`` and with the hard map ``x + t (y[p2p] - x)``, and at the full resolution (the frames
 ``evaluate.py`` writes: the displacement lifted barycentrically) against the hard-map blend. Scores: the
 area-weighted conformal distortion (clamped at 10, as the evaluation) of each frame against x, and the Chamfer

@@ -45,7 +45,7 @@ def build(method: str, faust_r: str):
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
-    from shapecorr.cli.evaluate import build_matcher
+    from shapecorr.cli.matcher_factory import build_matcher
     from shapecorr.data.datasets import PairDataset
     from shapecorr.data.operators import required_request
 

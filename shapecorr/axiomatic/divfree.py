@@ -369,8 +369,8 @@ class DivFreeMatcher:
         feats = sample.features.get(DESCRIPTOR)
         if feats is None:
             raise ConfigError(
-                f"shape {sample.name!r} has no {DESCRIPTOR!r} descriptor: add it to data.operators.descriptors, "
-                "or set model.descriptor_weight=0"
+                f"shape {sample.name!r} has no {DESCRIPTOR!r} descriptor: add it to data.operators.request "
+                "(e.g. +data.operators.request={shot:{}}), or set model.descriptor_weight=0"
             )
         if feats.ndim != 2 or feats.shape[0] != sample.shape.n_verts:
             raise ConfigError(f"{DESCRIPTOR} of {sample.name!r} has shape {tuple(feats.shape)}, expected (n, c)")

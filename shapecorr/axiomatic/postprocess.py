@@ -1,4 +1,4 @@
-"""Smooth Shells as post-processing of any matcher's map (``evaluate.py postprocess=smooth_shells``; issue 14).
+"""Smooth Shells as post-processing of any matcher's map (``evaluate.py postprocess=smooth_shells``).
 
 :class:`SmoothShellsPostprocess` wraps a matcher (learned or not): ``match(x, y)`` runs the wrapped matcher,
 then :func:`shapecorr.axiomatic.smooth_shells.refine` initialized from its maps (the layered matching from

@@ -1330,7 +1330,8 @@ def shape_from_sample(sample, need_shot: bool = True) -> ShellsShape:
     """:class:`ShellsShape` from a data-pipeline ``ShapeSample`` (verts, faces, evals, evecs, mass, SHOT)."""
     shot = sample.features.get("shot") if need_shot else None
     if need_shot and shot is None:
-        raise ConfigError(f"shape {sample.name!r} has no 'shot' descriptor; add it to data.operators.descriptors")
+        raise ConfigError(f"shape {sample.name!r} has no 'shot' descriptor; add it to data.operators.request "
+                          "(e.g. +data.operators.request={shot:{}})")
     return shells_shape(sample.verts, sample.faces, sample.evals, sample.evecs, sample.mass, shot=shot,
                         name=sample.name)
 

@@ -7,7 +7,7 @@ The two meshes (.off/.ply/.obj) go through the data pipeline of every other shap
 (:func:`shapecorr.data.io.load_shape`, through the mesh cache), normalized with the data config's
 ``normalization``, and given the operators of the data config plus the matcher's ``required_operators``,
 computed on the first run and read from the shape cache (``paths.cache_dir``) afterwards. The matcher's
-``interpolate(A, B, times)`` (issue 6 interface) then deforms A towards B; A's vertices at t = 1 are A's
+``interpolate(A, B, times)`` (docs/evaluation.md §4) then deforms A towards B; A's vertices at t = 1 are A's
 identity (its connectivity and vertex order) in B's pose. Written to ``OUT/pose_transfer/<A>__<B>/``::
 
     deformed.ply        the frame at t = 1 in A's input units (evaluated even when 1 is not in interp_times)
@@ -30,6 +30,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
+from shapecorr.cli.matcher_factory import build_matcher, interp_times_option, resolve_device
 from shapecorr.data.cache import ShapeCache, default_cache_root
 from shapecorr.data.datamodule import ShapePairDataModule
 from shapecorr.data.datasets import (
@@ -171,12 +172,6 @@ def _required_option(cfg: DictConfig, key: str, what: str) -> Path:
 
 def run_pose_transfer(cfg: DictConfig) -> dict[str, Any]:
     """``evaluate.py task=pose_transfer`` (see the module docstring); prints and returns the written paths."""
-    from shapecorr.cli.evaluate import (
-        build_matcher,
-        interp_times_option,
-        resolve_device,
-    )
-
     source = _required_option(cfg, "source", "the shape whose identity is kept")
     target = _required_option(cfg, "target", "the shape whose pose is taken")
     interp_times = interp_times_option(cfg)

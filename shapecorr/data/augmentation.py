@@ -273,10 +273,13 @@ def remeshed_sample(sample: ShapeSample, remeshed: Remeshed) -> ShapeSample:
     return ShapeSample(
         shape=Shape(verts=verts, faces=faces, name=f"{shape.name}@{m}", path=shape.path, scale=shape.scale,
                     offset=shape.offset),
-        evals=torch.zeros(0),
-        evecs=torch.zeros(m, 0),
-        mass=torch.from_numpy(mass.astype(np.float32)),
-        features={},
+        operators={
+            "eigenbasis": {
+                "evals": torch.zeros(0),
+                "evecs": torch.zeros(m, 0),
+                "mass": torch.from_numpy(mass.astype(np.float32)),
+            },
+        },
         corres=carry(sample.corres),
         corres_sym=carry(sample.corres_sym),
     )
@@ -431,9 +434,14 @@ def _geometry_only(sample: ShapeSample) -> ShapeSample:
     def move(t):
         return None if t is None else t.detach().cpu()
     shape = sample.shape.to("cpu")
-    return ShapeSample(shape=shape, evals=torch.zeros(0), evecs=torch.zeros(shape.n_verts, 0),
-                       mass=move(sample.mass), features={}, corres=move(sample.corres),
-                       corres_sym=move(sample.corres_sym))
+    return ShapeSample(
+        shape=shape,
+        operators={
+            "eigenbasis": {"evals": torch.zeros(0), "evecs": torch.zeros(shape.n_verts, 0), "mass": move(sample.mass)},
+        },
+        corres=move(sample.corres),
+        corres_sym=move(sample.corres_sym),
+    )
 
 
 class PairAugmenter:

@@ -129,8 +129,8 @@ class ShapePairDataModule(pl.LightningDataModule):
         :class:`Normalization` fields.
     operators
         :class:`~shapecorr.data.operators.OperatorConfig` options: ``laplacian`` (data-wide), ``request``
-        (operators every shape gets), ``params`` (this dataset's parameter defaults per operator), or the flat
-        shorthands ``n_eig``, ``descriptors``, ... ; models add their ``required_operators`` (:meth:`with_operators`).
+        (operators every shape gets), ``n_eig`` (its eigenpairs), ``params`` (this dataset's parameter defaults per
+        operator); models add their ``required_operators`` (:meth:`with_operators`).
     cache_dir
         Shape-cache root (default ``$SHAPECORR_CACHE`` or ``~/.cache/shapecorr``).
     num_workers
@@ -210,8 +210,7 @@ class ShapePairDataModule(pl.LightningDataModule):
             each operator's merge rule (the eigenbasis keeps the larger ``k``).
         **changes
             More requests by name (``with_operators(**model.required_operators)``), the data-wide setting
-            ``laplacian``, or the flat shorthands of earlier versions (``n_eig`` as a lower bound,
-            ``descriptors`` added).
+            ``laplacian``, or ``n_eig`` (a lower bound on the eigenbasis size).
         """
         self.operators = self.operators.with_request(request, **changes)
         self._shapes.clear()

@@ -98,8 +98,7 @@ class ShapeSample:
 
     Convenience views: ``evals (k,)``, ``evecs (n, k)``, ``mass (n,)`` (the eigenbasis operator; standard ½-cot
     eigenvalue scale, mass-orthonormal eigenfunctions, lumped vertex areas) and ``features[name] (n, c)`` (the
-    descriptor operators: shot, wks, hks). The constructor also takes those (``ShapeSample(shape, evals, evecs,
-    mass, features=...)``), as before the operator registry.
+    descriptor operators: shot, wks, hks).
     """
 
     shape: Shape
@@ -110,20 +109,11 @@ class ShapeSample:
     def __init__(
         self,
         shape: Shape,
-        evals: torch.Tensor | None = None,
-        evecs: torch.Tensor | None = None,
-        mass: torch.Tensor | None = None,
-        features: Mapping[str, torch.Tensor] | None = None,
+        operators: Mapping[str, Mapping[str, Any]] | None = None,
         corres: torch.Tensor | None = None,
         corres_sym: torch.Tensor | None = None,
-        operators: Mapping[str, Mapping[str, Any]] | None = None,
     ):
         ops = {name: {k: _tensor(v) for k, v in arrays.items()} for name, arrays in (operators or {}).items()}
-        eig = {k: v for k, v in (("evals", evals), ("evecs", evecs), ("mass", mass)) if v is not None}
-        if eig:
-            ops["eigenbasis"] = {**ops.get("eigenbasis", {}), **{k: _tensor(v) for k, v in eig.items()}}
-        for name, value in (features or {}).items():
-            ops[name] = {name: _tensor(value)}
         object.__setattr__(self, "shape", shape)
         object.__setattr__(self, "operators", ops)
         object.__setattr__(self, "corres", corres)

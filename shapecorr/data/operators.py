@@ -16,26 +16,22 @@ Data-wide settings and per-dataset parameters (:class:`OperatorConfig`, the data
 
 * ``laplacian`` (``cotan`` | ``robust``) applies to every operator that has a ``laplacian`` parameter
   (eigenbasis, WKS, HKS);
-* ``request``: operators computed for every shape whatever the model (default: 200 eigenpairs);
+* ``n_eig``: the eigenpairs every shape gets (``request.eigenbasis.k``; default 200);
+* ``request``: further operators computed for every shape whatever the model, e.g. ``{shot: {}, wks: {}}``;
 * ``params``: this dataset's parameter defaults per operator, e.g. ``{shot: {radius_factor: 0.25}}`` for tiny
-  meshes; a model's request inherits them unless it sets the parameter itself;
-* the flat keys of earlier versions stay accepted as shorthands: ``n_eig`` (= ``request.eigenbasis.k``),
-  ``descriptors`` (= one empty request per name), ``shot_radius_factor``, ``n_wks``, ``n_hks``,
-  ``n_descriptor_eig`` (= ``params.shot.radius_factor``, ``params.wks.count``, ``params.hks.count``,
-  ``params.{wks,hks}.k``).
+  meshes; a model's request inherits them unless it sets the parameter itself.
 
 Resolution (:meth:`OperatorConfig.resolve`): operator defaults < data-wide settings < dataset ``params`` <
 the request's own values; then each operator's ``resolve`` hook (WKS/HKS: ``k`` unset = at most the requested
-eigenbasis size, 200 by default, as before).
+eigenbasis size, 200 by default).
 
 Reuse. A cached entry with other parameters answers a request when the operator says so (``satisfies``): an
 eigenbasis with k' >= k eigenpairs (same Laplacian) is truncated to k (``restrict``) instead of recomputed. The
 exact entry is preferred; among larger ones the smallest.
 
-Cache keys are ``(name, mesh content hash, resolved parameters, version)``; the parameter names of the built-in
-operators are those of the cache entries written before the registry existed (eigenbasis ``{k, laplacian}``,
-shot ``{radius_factor}``, wks/hks ``{count, k, laplacian}``, geodesics ``{method}``), so existing entries stay
-valid.
+Cache keys are ``(name, mesh content hash, resolved parameters, version)``; the parameters of the built-in
+operators are eigenbasis ``{k, laplacian}``, shot ``{radius_factor}``, wks/hks ``{count, k, laplacian}``,
+geodesics ``{method}``.
 
 Adding an operator (e.g. DiffusionNet's sparse gradient operators) is one call::
 
@@ -55,7 +51,6 @@ different entry).
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -205,12 +200,12 @@ def register_operator(
     return op
 
 
-def get_operator(name: str) -> Operator:
-    """The registered operator ``name`` (ConfigError listing the known ones otherwise)."""
+def get_operator(name: str, where: str = "") -> Operator:
+    """The registered operator ``name`` (ConfigError listing the known ones otherwise, prefixed by ``where``)."""
     try:
         return REGISTRY[name]
     except KeyError:
-        raise ConfigError(f"unknown operator {name!r}; registered: {sorted(REGISTRY)}") from None
+        raise ConfigError(f"{where}unknown operator {name!r}; registered: {sorted(REGISTRY)}") from None
 
 
 def operator_names() -> tuple[str, ...]:
@@ -253,10 +248,11 @@ def as_request(request: OperatorRequest | None, where: str = "") -> dict[str, di
         raise ConfigError(f"{where}an operator request must be a mapping {{name: {{param: value}}}}, got {request!r}")
     out = {}
     for name, params in request.items():
+        op = get_operator(name, where)
         params = plain_container(params) or {}
         if not isinstance(params, Mapping):
             raise ConfigError(f"{where}parameters of operator {name!r} must be a mapping, got {params!r}")
-        get_operator(name).check_params(params, where)
+        op.check_params(params, where)
         out[str(name)] = dict(params)
     return out
 
@@ -274,37 +270,31 @@ def merge_requests(*requests: OperatorRequest | None) -> dict[str, dict[str, Any
     return out
 
 
-def _legacy_options(options: Mapping[str, Any]) -> tuple[dict, dict]:
-    """(request, params) of the flat ``data.operators`` keys of earlier versions."""
-    request: dict[str, dict] = {}
-    params: dict[str, dict] = {}
-    if options.get("n_eig") is not None:
-        n_eig = int(options["n_eig"])
-        if n_eig < 1:
-            raise ConfigError(f"n_eig must be >= 1, got {n_eig}")
-        request["eigenbasis"] = {"k": n_eig}
-    descriptors = options.get("descriptors") or ()
-    if isinstance(descriptors, str):
-        descriptors = [descriptors]
-    for name in descriptors:
-        op = get_operator(name)
-        if not op.feature:
-            raise ConfigError(f"{name!r} is not a descriptor; data.operators.descriptors takes "
-                              f"{sorted(n for n, o in REGISTRY.items() if o.feature)}")
-        request[name] = {}
-    if options.get("shot_radius_factor") is not None:
-        params.setdefault("shot", {})["radius_factor"] = float(options["shot_radius_factor"])
-    for key, name in (("n_wks", "wks"), ("n_hks", "hks")):
-        if options.get(key) is not None:
-            params.setdefault(name, {})["count"] = int(options[key])
-    if options.get("n_descriptor_eig") is not None:
-        for name in ("wks", "hks"):
-            params.setdefault(name, {})["k"] = int(options["n_descriptor_eig"])
-    return request, params
+def _eigenbasis_request(n_eig: Any) -> dict[str, dict]:
+    """The request of the ``n_eig`` setting (``{}`` when it is None)."""
+    if n_eig is None:
+        return {}
+    k = int(n_eig)
+    if k < 1:
+        raise ConfigError(f"n_eig must be >= 1, got {k}")
+    return {"eigenbasis": {"k": k}}
 
 
-#: The flat ``data.operators`` keys of earlier versions (shorthands, see the module docstring).
-LEGACY_OPTIONS = ("n_eig", "descriptors", "shot_radius_factor", "n_wks", "n_hks", "n_descriptor_eig")
+#: Keys that are not ``data.operators`` options, with the option that says the same.
+_NOT_OPTIONS = {
+    "descriptors": "request: {<name>: {}} (e.g. request: {shot: {}, wks: {}})",
+    "shot_radius_factor": "params: {shot: {radius_factor: ...}}",
+    "n_wks": "params: {wks: {count: ...}}",
+    "n_hks": "params: {hks: {count: ...}}",
+    "n_descriptor_eig": "params: {wks: {k: ...}, hks: {k: ...}}",
+}
+
+
+def _unknown_options(keys: Any, where: str) -> ConfigError:
+    """The error for option names ``keys`` that ``data.operators`` (or ``with_request``) does not take."""
+    hints = [f"{k}: use {_NOT_OPTIONS[k]}" for k in keys if k in _NOT_OPTIONS]
+    return ConfigError(f"unknown {where} option(s) {sorted(keys)}; allowed: request, params, n_eig, "
+                       f"{', '.join(DATA_SETTINGS)}" + ("".join(f"; {h}" for h in hints)))
 
 
 @dataclass(frozen=True, init=False)
@@ -321,9 +311,13 @@ class OperatorConfig:
     laplacian
         ``"cotan"`` (libigl) or ``"robust"`` (robust-laplacian, for non-manifold meshes): every operator built
         on the Laplacian.
-    **legacy
-        The flat keys of :data:`LEGACY_OPTIONS` (``n_eig``, ``descriptors``, ...), mapped into ``request`` /
-        ``params``; ``n_eig`` replaces the default eigenbasis size.
+    n_eig
+        Eigenpairs every shape gets (``request.eigenbasis.k``); replaces the default eigenbasis size.
+
+    Raises
+    ------
+    ConfigError
+        An unknown option (the message names the option that says the same, where there is one).
     """
 
     request: Mapping[str, Mapping[str, Any]]
@@ -331,21 +325,15 @@ class OperatorConfig:
     laplacian: str
 
     def __init__(self, request: OperatorRequest | None = None, params: OperatorRequest | None = None,
-                 laplacian: str = "cotan", **legacy: Any):
-        unknown = sorted(set(legacy) - set(LEGACY_OPTIONS))
+                 laplacian: str = "cotan", n_eig: int | None = None, **unknown: Any):
         if unknown:
-            raise ConfigError(f"unknown data.operators option(s) {unknown}; allowed: request, params, "
-                              f"{', '.join(DATA_SETTINGS)} and the shorthands {', '.join(LEGACY_OPTIONS)}")
+            raise _unknown_options(unknown, "data.operators")
         if laplacian not in LAPLACIANS:
             raise ConfigError(f"laplacian must be one of {LAPLACIANS}, got {laplacian!r}")
-        legacy_request, legacy_params = _legacy_options(legacy)
-        base = {"eigenbasis": {"k": DEFAULT_N_EIG}} if request is None and "n_eig" not in legacy else {}
-        merged_params: dict[str, dict] = {}
-        for source in (legacy_params, as_request(params, "data.operators.params: ")):
-            for name, values in source.items():
-                merged_params.setdefault(name, {}).update(values)
+        base = {"eigenbasis": {"k": DEFAULT_N_EIG}} if request is None and n_eig is None else {}
+        merged_params = {name: dict(values) for name, values in as_request(params, "data.operators.params: ").items()}
         object.__setattr__(self, "request", merge_requests(base, as_request(request, "data.operators.request: "),
-                                                           legacy_request))
+                                                           _eigenbasis_request(n_eig)))
         object.__setattr__(self, "params", merged_params)
         object.__setattr__(self, "laplacian", str(laplacian))
 
@@ -361,19 +349,19 @@ class OperatorConfig:
         """A copy with ``request`` merged in.
 
         ``changes`` are further ``{name: params}`` requests, ``params`` (dataset parameter defaults, updated),
-        data-wide settings (``laplacian``) or the flat shorthands (``n_eig`` is then a lower bound, ``descriptors``
-        added).
+        data-wide settings (``laplacian``) or ``n_eig`` (then a lower bound on the eigenbasis size).
         """
         request = dict(as_request(request))
         extra_params = as_request(changes.pop("params", None), "params: ")
         settings = {k: changes.pop(k) for k in DATA_SETTINGS if k in changes}
-        legacy = {k: changes.pop(k) for k in LEGACY_OPTIONS if k in changes}
-        legacy_request, legacy_params = _legacy_options(legacy)
+        n_eig_request = _eigenbasis_request(changes.pop("n_eig", None))
+        not_operators = [k for k in changes if k in _NOT_OPTIONS]
+        if not_operators:
+            raise _unknown_options(not_operators, "with_request")
         params = {name: dict(values) for name, values in self.params.items()}
-        for source in (legacy_params, extra_params):
-            for name, values in source.items():
-                params.setdefault(name, {}).update(values)
-        merged = merge_requests(self.request, request, as_request(changes), legacy_request)
+        for name, values in extra_params.items():
+            params.setdefault(name, {}).update(values)
+        merged = merge_requests(self.request, request, as_request(changes), n_eig_request)
         return OperatorConfig(request=merged, params=params, laplacian=settings.get("laplacian", self.laplacian))
 
     def resolve(self, request: OperatorRequest | None = None) -> dict[str, dict[str, Any]]:
@@ -396,13 +384,13 @@ class OperatorConfig:
 
     @property
     def n_eig(self) -> int | None:
-        """Requested eigenpairs (the shorthand's view of ``request["eigenbasis"]["k"]``; None without eigenbasis)."""
+        """Requested eigenpairs (``request["eigenbasis"]["k"]``; None without eigenbasis)."""
         eig = self.request.get("eigenbasis")
         return None if eig is None else int(eig.get("k", get_operator("eigenbasis").defaults["k"]))
 
     @property
     def descriptors(self) -> tuple[str, ...]:
-        """Requested descriptor operators (the shorthand's view of ``request``)."""
+        """Requested descriptor operators (the names in ``request`` registered as descriptors)."""
         return tuple(name for name in self.request if get_operator(name).feature)
 
     def as_dict(self) -> dict[str, Any]:
@@ -630,26 +618,13 @@ def feature_names() -> tuple[str, ...]:
 
 
 def required_request(matcher: Any) -> dict[str, dict[str, Any]]:
-    """The operator request of a model or matcher: its ``required_operators`` (``{}`` when it has none), checked.
-
-    The flat form of earlier versions (``{"descriptors": [...], "n_eig": k}``) is still read, with a
-    FutureWarning.
-    """
+    """The operator request of a model or matcher: its ``required_operators`` (``{}`` when it has none), checked."""
     request = dict(plain_container(getattr(matcher, "required_operators", None)) or {})
-    where = f"{type(matcher).__name__}: "
-    legacy = {k: request.pop(k) for k in LEGACY_OPTIONS if k in request}
-    if not legacy:
-        return as_request(request, where)
-    warnings.warn(f"{where}required_operators in the flat form {sorted(legacy)} is deprecated; declare "
-                  "{operator name: {param: value}}, e.g. {'eigenbasis': {'k': 200}, 'shot': {}}",
-                  FutureWarning, stacklevel=2)
-    legacy_request, _ = _legacy_options(legacy)
-    return merge_requests(request, legacy_request)
+    return as_request(request, f"{type(matcher).__name__}: ")
 
 
 __all__ = [
     "DATA_SETTINGS",
-    "LEGACY_OPTIONS",
     "OPERATOR_VERSIONS",
     "REGISTRY",
     "Operator",

@@ -1,6 +1,6 @@
 """Writing evaluation outputs to disk: point-to-point maps and interpolation sequences.
 
-Layout under an output folder (docs/evaluation.md §6; issue 6 for the ``interp`` names)::
+Layout under an output folder (docs/evaluation.md §6)::
 
     maps/<x>__<y>.txt               one zero-based target index per line, one line per source vertex
     maps/<x>__<y>.npy               the same map as an int64 array
@@ -29,11 +29,11 @@ from shapecorr.data.datasets import pair_name
 from shapecorr.errors import CorrespondenceError, NumericalError
 
 MAPS_DIR = "maps"
-#: Folder of the interpolation sequences under an evaluation output folder (issue 6: ``interp/<x>__<y>/``).
+#: Folder of the interpolation sequences under an evaluation output folder (``interp/<x>__<y>/``).
 INTERP_DIR = "interp"
 #: File listing the frame times of a sequence folder, one per line.
 TIMES_FILE = "times.txt"
-#: Frame files are ``t_XX.ply``: prefix, minimum number of digits of the frame index (issue 6), extension.
+#: Frame files are ``t_XX.ply``: prefix, minimum number of digits of the frame index, extension.
 FRAME_PREFIX = "t_"
 FRAME_DIGITS = 2
 FRAME_EXTENSION = ".ply"

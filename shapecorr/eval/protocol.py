@@ -18,7 +18,7 @@ Per pair, under the output folder::
     pairs/<x>__<y>.npz                       per-reference-point errors (``errors``, ``errors_sym``)
     pairs/<x>__<y>.json                      the :class:`PairRecord`, written last
 
-Interpolating matchers (issue 6): a matcher *interpolates* when it has a method
+Interpolating matchers: a matcher *interpolates* when it has a method
 ``interpolate(x, y, times: (T,) float tensor) -> MatchResult`` whose ``deformation (T, n_x, 3)`` holds x's
 vertices at those times (t = 0: x, t = 1: x deformed onto y, t > 1: an extrapolation); its ``match(x, y)``
 returns the same maps and its default frames. With ``EvalSettings.interp_times`` set, :func:`run_matcher`

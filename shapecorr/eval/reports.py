@@ -16,7 +16,7 @@ Aggregation conventions (documented in ``metrics.json`` itself under ``"conventi
 * ``peak_memory_mb``: the largest resident set size of this process and of its worker processes
   (``resource.getrusage``), and ``peak_cuda_memory_mb`` when a GPU was used;
 * ``mean_conformal_distortion``: the conformal distortion of the *map* (every matcher), mean over pairs;
-* only for matchers returning a deformation (interpolating matchers, issue 6), means over the pairs that have
+* only for matchers returning a deformation (interpolating matchers), means over the pairs that have
   one (``n_pairs_interpolated``): ``mean_deformation_conformal_distortion`` (the conformal distortion along
   the sequence: per pair the mean over the frames with 0 <= t <= 1, then the mean over pairs; same clamp),
   ``mean_chamfer`` / ``mean_chamfer_one_sided`` (the frame at t = 1 against the target, fractions of

@@ -11,7 +11,6 @@ All implement the matcher protocol of :mod:`shapecorr.matching.result` and are u
 from __future__ import annotations
 
 import os
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -239,16 +238,10 @@ class LinearBlend(torch.nn.Module):
         ``needs_ground_truth`` are passed through.
     interp_times : sequence of float
         Frames of :meth:`match` (default :data:`LINEAR_BLEND_TIMES`); :meth:`interpolate` takes any times.
-    times : sequence of float, optional
-        The old name of ``interp_times`` (accepted with a warning).
     """
 
-    def __init__(self, matcher, interp_times=LINEAR_BLEND_TIMES, times=None):
+    def __init__(self, matcher, interp_times=LINEAR_BLEND_TIMES):
         super().__init__()
-        if times is not None:
-            warnings.warn("LinearBlend: the option `times` is now `interp_times` (model.interp_times=...), the "
-                          "name evaluate.py and NeuroMorph use", UserWarning, stacklevel=2)
-            interp_times = times
         if not callable(getattr(matcher, "match", None)):
             raise ConfigError(f"LinearBlend wraps a matcher (with a match(x, y) method), got {type(matcher).__name__}")
         values = [float(t) for t in interp_times]

@@ -38,7 +38,7 @@ axiomatic refinement :func:`refine_deep_shells`: 40 log-spaced shell sizes from 
 nearest neighbours, :mod:`shapecorr.matching.nearest_neighbors`). Unlike the original, the OT level's
 second Sinkhorn (whose plan the original computes and discards) is skipped.
 
-Decisions on the [BUG?] points of docs/deep_shells.md §9 (``DeepShellsConfig.original()`` restores all of the
+Deviations from the original code (docs/deep_shells.md §9; ``DeepShellsConfig.original()`` restores all of the
 original Python behaviour, and is what the parity test uses):
 
 - Shell of X (``smooth_x``): the Deep Shells code truncates X hard at ``k`` but smooths Y with the sigmoid
@@ -127,7 +127,8 @@ class DeepShellsConfig:
     """Hyperparameters of the Deep Shells matching layer and test-time refinement.
 
     Defaults are the published values (released checkpoint ``par`` and ``param.py``), except for the
-    [BUG?] flags explained in the module docstring; :meth:`original` gives the original behaviour.
+    deviations from the original code (docs/deep_shells.md §9, module docstring); :meth:`original` gives the
+    original behaviour.
 
     Attributes
     ----------
@@ -148,7 +149,7 @@ class DeepShellsConfig:
     max_query_points : int
         Test time: above this many vertices the OT part runs on farthest-point samples.
     smooth_x : {"sigmoid", "hard"}
-        Shell of X; the original truncates hard ([BUG?], module docstring).
+        Shell of X; the original truncates hard (deviation from the original code, docs/deep_shells.md §9).
     sigmoid_inclusive : bool
         Sigmoid weight count k+9 (True, MATLAB) or k+8 (False, original Python port).
     normal_norm : {"all", "samples"}
@@ -205,7 +206,7 @@ class DeepShellsConfig:
 
     @classmethod
     def original(cls, **overrides) -> "DeepShellsConfig":
-        """The behaviour of the original code on every [BUG?] point (for parity and published weights)."""
+        """The original code's behaviour on every deviation (docs/deep_shells.md §9; parity, published weights)."""
         return replace(cls(smooth_x="hard", sigmoid_inclusive=False, normal_norm="samples"), **overrides)
 
     @property

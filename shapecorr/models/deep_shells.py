@@ -172,7 +172,7 @@ class DeepShells(CorrespondenceModule):
         keywords = getattr(self.optimizer, "keywords", {}) or {}
         return None if "lr" not in keywords else float(keywords["lr"])
 
-    # -- published / earlier weights --------------------------------------------------------------------------
+    # -- published or trained weights -------------------------------------------------------------------------
     def load_pretrained(self, path: str | PathLike) -> None:
         """Load the filter-bank weights from the original's ``.pth`` or one of our Lightning ``.ckpt`` files.
 

@@ -42,7 +42,7 @@ networks for ``T + 1`` time steps. Queries never hold a full soft map: ``match_c
 at a time (the interpolation target ``Pi y`` is accumulated per chunk), so full-resolution queries of 10k
 vertices need ~160 MB for the similarities instead of 400 MB per soft map.
 
-Decisions on the original's [BUG?] items (docs/neuromorph.md): global max-pool over vertices
+Deviations from the original code (docs/neuromorph.md §8): global max-pool over vertices
 (``pool="global"``; original: per-vertex max over channels, ``"channel"``), detached ARAP rotations and the
 "both-sides" ARAP energy (loss config; original: differentiated SVD, "average" of the two rotations), counted
 with the original's edge multiplicity (``arap_edge_weight_scale=0.5``: on the parity reference pairs the energy
@@ -274,7 +274,7 @@ class NeuroMorph(CorrespondenceModule):
 
     @property
     def backbone(self) -> Backbone:
-        """The feature extractor (stored as ``feature_net``: parameter names of older checkpoints)."""
+        """The feature extractor (stored as ``feature_net``: the parameter names in checkpoints)."""
         return self.feature_net
 
     # -- scheduled settings -------------------------------------------------------------------------------

@@ -9,8 +9,8 @@ CNN", 2019) whose message function is a pre-activation residual MLP block
 aggregated with a max over the mesh neighbours j of vertex i. Between layers the features are concatenated
 with a pooled copy of themselves and with the network input.
 
-Pooling ([BUG?] in docs/neuromorph.md §8). The original takes the max over dim 1 of an ``(n, h)`` tensor, i.e.
-over the *channels* of each vertex, a left-over of an earlier batched ``(T, n, h)`` version. We default to
+Pooling: a deviation from the original code (docs/neuromorph.md §8). The original takes the max over dim 1 of
+an ``(n, h)`` tensor, i.e. over the *channels* of each vertex (a batched ``(T, n, h)`` left-over). We default to
 the paper's intent, a true **global max-pool over the vertices** (``pool="global"``): every vertex then
 sees a descriptor of the whole shape. ``pool="channel"`` reproduces the original. Both give the layers the
 same weight shapes, so checkpoints stay interchangeable in shape (not in meaning).

@@ -41,8 +41,10 @@ def _sample(verts, faces, name):
     n = len(verts)
     return ShapeSample(
         shape=make_shape(verts, faces, name, normalization=None),
-        evals=torch.zeros(1), evecs=torch.ones(n, 1), mass=torch.ones(n),
-        features={"shot": torch.tensor(shot(verts, faces), dtype=torch.float32)},
+        operators={
+            "eigenbasis": {"evals": torch.zeros(1), "evecs": torch.ones(n, 1), "mass": torch.ones(n)},
+            "shot": {"shot": torch.tensor(shot(verts, faces), dtype=torch.float32)},
+        },
     )
 
 
@@ -143,7 +145,10 @@ def test_bad_input(rigid_pair):
         DivFreeMatcher(rule="euler")
     with pytest.raises(ConfigError, match="prealign"):
         DivFreeMatcher(prealign="icp")
-    no_shot = ShapeSample(shape=x.shape, evals=x.evals, evecs=x.evecs, mass=x.mass)
+    no_shot = ShapeSample(
+        shape=x.shape,
+        operators={"eigenbasis": {"evals": x.evals, "evecs": x.evecs, "mass": x.mass}},
+    )
     with pytest.raises(ConfigError, match="shot"):
         DivFreeMatcher(**FAST).match(no_shot, y)
 

@@ -1,4 +1,4 @@
-"""``evaluate.py`` with an interpolating matcher (issue 6): frames, times, metrics, resumption.
+"""``evaluate.py`` with an interpolating matcher: frames, times, metrics, resumption.
 
 A tiny FAUST-style folder: three bent, vertex-permuted icospheres (162 vertices) at different sizes and
 positions (so that frames in the wrong units would show), with ``.vts`` ground truth on every vertex.

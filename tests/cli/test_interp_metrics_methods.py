@@ -1,4 +1,4 @@
-"""Interpolation metrics of ``evaluate.py`` for every interpolating method (issue 16, deliverable 3).
+"""Interpolation metrics of ``evaluate.py`` for every interpolating method.
 
 Each of NeuroMorph (untrained, small nets), divfree, Hamiltonian and linear blend runs through ``evaluate()``
 (the function ``evaluate.py`` calls) on one pair of the tiny bent-icosphere folder (162 vertices, closed, ``.vts``

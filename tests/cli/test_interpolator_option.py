@@ -1,4 +1,4 @@
-"""``evaluate.py interpolator=<name>`` (issue 16): an interpolator on top of any model's maps.
+"""``evaluate.py interpolator=<name>``: an interpolator on top of any model's maps.
 
 A tiny FAUST-style folder: two bent, vertex-permuted icospheres (162 vertices) in different units, with ``.vts``
 ground truth on every vertex, evaluated on one pair through ``evaluate()`` (the function ``evaluate.py`` calls).
@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shapecorr.cli.evaluate import build_matcher, evaluate, with_interpolator
+from shapecorr.cli.evaluate import evaluate
+from shapecorr.cli.matcher_factory import build_matcher, with_interpolator
 from shapecorr.data.io import read_mesh
 from shapecorr.errors import ConfigError
 from shapecorr.eval.export import read_times

@@ -1,4 +1,4 @@
-"""``last.ckpt`` is the final step also with ``checkpoint.every_n_train_steps`` (issue 17)."""
+"""``last.ckpt`` is the final step also with ``checkpoint.every_n_train_steps``."""
 
 from __future__ import annotations
 

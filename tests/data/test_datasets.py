@@ -198,7 +198,7 @@ def test_datamodule_loaders(folder, tmp_path):
     dm2 = ShapePairDataModule(folder, splits={"train": {"split": "train"}}, pairs={"train": {"include_self": True}},
                               operators={"n_eig": 6}, cache_dir=tmp_path)
     assert [b.name for b in dm2.train_dataloader()] == again
-    dm.with_operators(descriptors=["wks"], n_eig=8)
+    dm.with_operators({"wks": {}}, n_eig=8)
     assert dm.operators.n_eig == 8 and dm.operators.descriptors == ("wks",)
     assert dm.shapes("test")[0].features["wks"].shape[0] == dm.shapes("test")[0].shape.n_verts
 

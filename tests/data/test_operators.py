@@ -17,6 +17,7 @@ from shapecorr.data.operators import (
     compute_operator,
     compute_operators,
     merge_requests,
+    required_request,
 )
 from shapecorr.data.shape import make_shape
 from shapecorr.errors import ConfigError
@@ -39,24 +40,51 @@ def test_merge_requests_keeps_the_larger_eigenbasis_and_rejects_conflicts():
         merge_requests({"shot": {"radius": 0.1}})
 
 
-def test_resolution_order_and_legacy_shorthands():
+def test_resolution_order_and_n_eig():
     cfg = OperatorConfig(laplacian="robust", params={"shot": {"radius_factor": 0.25}})
     resolved = cfg.resolve({"shot": {}, "wks": {}, "eigenbasis": {"k": 50}})
     assert resolved["eigenbasis"] == {"k": 200, "laplacian": "robust"}  # the data's default 200 > 50
     assert resolved["shot"] == {"radius_factor": 0.25}  # the dataset's parameter, not the operator default
     assert resolved["wks"] == {"count": 100, "k": 200, "laplacian": "robust"}
     assert cfg.resolve({"shot": {"radius_factor": 0.1}})["shot"]["radius_factor"] == 0.1  # explicit wins
-    legacy = OperatorConfig(n_eig=12, descriptors=["wks", "shot"], shot_radius_factor=0.3, n_wks=7)
-    assert legacy.request == {"eigenbasis": {"k": 12}, "wks": {}, "shot": {}}
-    assert legacy.n_eig == 12 and legacy.descriptors == ("wks", "shot")
-    assert legacy.resolve()["wks"] == {"count": 7, "k": 12, "laplacian": "cotan"}  # k at most the eigenbasis
-    assert legacy.resolve()["shot"] == {"radius_factor": 0.3}
-    raised = legacy.with_request({"eigenbasis": {"k": 8}, "hks": {}}, n_eig=10)
-    assert raised.request["eigenbasis"] == {"k": 12} and "hks" in raised.request
+    small = OperatorConfig(n_eig=12, request={"wks": {}, "shot": {}}, params={"wks": {"count": 7}})
+    assert small.request == {"eigenbasis": {"k": 12}, "wks": {}, "shot": {}}
+    assert small.n_eig == 12 and small.descriptors == ("wks", "shot")
+    assert small.resolve()["wks"] == {"count": 7, "k": 12, "laplacian": "cotan"}  # k at most the eigenbasis
+    raised = small.with_request({"eigenbasis": {"k": 8}, "hks": {}}, n_eig=10)
+    assert raised.request["eigenbasis"] == {"k": 12} and "hks" in raised.request  # n_eig: a lower bound
+    assert small.with_request(n_eig=30).n_eig == 30
     with pytest.raises(ConfigError, match="n_eigs"):
         OperatorConfig(n_eigs=3)
-    with pytest.raises(ConfigError, match="not a descriptor"):
-        OperatorConfig(descriptors=["geodesics"])
+    with pytest.raises(ConfigError, match="n_eig must be >= 1"):
+        OperatorConfig(n_eig=0)
+
+
+@pytest.mark.parametrize("key, value, hint", [
+    ("descriptors", ["shot"], "request: {<name>: {}}"),
+    ("shot_radius_factor", 0.3, "params: {shot: {radius_factor"),
+    ("n_wks", 7, "params: {wks: {count"),
+    ("n_descriptor_eig", 50, "params: {wks: {k"),
+])
+def test_keys_that_are_not_options_name_the_option_to_use(key, value, hint):
+    with pytest.raises(ConfigError, match="unknown data.operators option") as err:
+        OperatorConfig(**{key: value})
+    assert hint in str(err.value)
+    with pytest.raises(ConfigError, match="unknown with_request option") as err:
+        OperatorConfig().with_request(**{key: value})
+    assert hint in str(err.value)
+
+
+def test_required_operators_take_the_request_form_only():
+    class Flat:
+        required_operators = {"n_eig": 100, "descriptors": ["shot"]}
+
+    class Nested:
+        required_operators = {"eigenbasis": {"k": 100}, "shot": {}}
+
+    assert required_request(Nested()) == {"eigenbasis": {"k": 100}, "shot": {}}
+    with pytest.raises(ConfigError, match="Flat: .*unknown operator"):
+        required_request(Flat())
 
 
 def test_eigenbasis_request_reuses_a_larger_cached_entry(tmp_path, mesh, monkeypatch):
@@ -80,7 +108,7 @@ def test_eigenbasis_request_reuses_a_larger_cached_entry(tmp_path, mesh, monkeyp
     compute_operator(cache, *mesh, "eigenbasis", {"k": 30, "laplacian": "cotan"})  # larger: computed
     assert calls == [20, 8, 30]
     # WKS built on the eigenbasis reuses it too (the smallest sufficient entry)
-    compute_operators(cache, *mesh, OperatorConfig(n_eig=10, descriptors=["wks"]))
+    compute_operators(cache, *mesh, OperatorConfig(n_eig=10, request={"wks": {}}))
     assert calls == [20, 8, 30]
 
 
@@ -111,11 +139,8 @@ def test_registering_a_sparse_operator_reaches_the_sample(tmp_path, mesh, monkey
 
 def test_sample_views_match_the_operators(tmp_path, mesh):
     cache = ShapeCache(tmp_path)
-    arrays = compute_operators(cache, *mesh, OperatorConfig(n_eig=6, descriptors=["hks"]))
+    arrays = compute_operators(cache, *mesh, OperatorConfig(n_eig=6, request={"hks": {}}))
     sample = ShapeSample(make_shape(*mesh, "s"), operators=arrays)
     assert sample.evecs.shape == (len(mesh[0]), 6) and sample.evecs.dtype == torch.float32
     assert torch.equal(sample.evals, torch.from_numpy(arrays["eigenbasis"]["evals"]))
     assert list(sample.features) == ["hks"] and sample.features["hks"].shape[0] == len(mesh[0])
-    legacy = ShapeSample(sample.shape, sample.evals, sample.evecs, sample.mass, features={"shot": sample.mass[:, None]})
-    assert set(legacy.operators) == {"eigenbasis", "shot"}
-    assert torch.equal(legacy.features["shot"], sample.mass[:, None])

@@ -1,4 +1,4 @@
-"""Real-scan defects end to end (issue 17): one case per item, each on a tiny FAUST-style folder in a tmp dir,
+"""Real-scan defects end to end: one case per item, each on a tiny FAUST-style folder in a tmp dir,
 run through ``evaluate.py``'s configs (Hydra compose, in process). Each case asserts the outcome (the run
 completes, or stops with exit status 2) and that the message names the file and the exact option."""
 

@@ -77,10 +77,10 @@ class SphereShapes:
         n = len(d["verts"])
         return ShapeSample(
             shape=self.load_shape(i),
-            evals=torch.zeros(1),
-            evecs=torch.ones(n, 1),
-            mass=torch.ones(n),
-            features={"wks": torch.from_numpy(d["features"])},
+            operators={
+                "eigenbasis": {"evals": torch.zeros(1), "evecs": torch.ones(n, 1), "mass": torch.ones(n)},
+                "wks": {"wks": torch.from_numpy(d["features"])},
+            },
             corres=torch.from_numpy(d["corres"]),
             corres_sym=torch.from_numpy(d["corres_sym"]),
         )

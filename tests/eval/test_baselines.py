@@ -66,7 +66,11 @@ def test_identity_gt_conflicting_ground_truth_keeps_first():
 
     def sample(name, corres):
         shape = make_shape(verts, faces, name, normalization=None)
-        return ShapeSample(shape, torch.zeros(1), torch.ones(4, 1), torch.ones(4), corres=torch.tensor(corres))
+        return ShapeSample(
+            shape=shape,
+            operators={"eigenbasis": {"evals": torch.zeros(1), "evecs": torch.ones(4, 1), "mass": torch.ones(4)}},
+            corres=torch.tensor(corres),
+        )
 
     x, y = sample("x", [0, 0, 1]), sample("y", [2, 3, 1])
     p2p = IdentityGT().match(x, y).p2p
@@ -110,7 +114,7 @@ def test_descriptor_nn_errors(spheres):
         DescriptorNN(normalize="whiten")
     with pytest.raises(ConfigError, match="no 'hks' descriptor"):
         DescriptorNN("hks").match(spheres[0], spheres[1])
-    bad = replace(spheres[0], features={"wks": torch.full((162, 8), float("nan"))})
+    bad = replace(spheres[0], operators={**spheres[0].operators, "wks": {"wks": torch.full((162, 8), float("nan"))}})
     with pytest.raises(NumericalError, match="NaN"):
         DescriptorNN("wks").match(bad, spheres[1])
 
@@ -144,8 +148,8 @@ def test_descriptor_nn_backends_agree_at_input_resolution(spheres, dim):
     g = torch.Generator().manual_seed(1)
     fx = torch.randn(x.shape.n_verts, dim, generator=g)
     fy = torch.randn(y.shape.n_verts, dim, generator=g)
-    x = replace(x, features={**x.features, "hks": fx})
-    y = replace(y, features={**y.features, "hks": fy})
+    x = replace(x, operators={**x.operators, "hks": {"hks": fx}})
+    y = replace(y, operators={**y.operators, "hks": {"hks": fy}})
     dense = torch.cdist(fx.double(), fy.double())
     for backend, chunk in (("auto", 1024), ("kdtree", 1024), ("brute", 7)):
         result = DescriptorNN("hks", backend=backend, chunk_rows=chunk).match(x, y)

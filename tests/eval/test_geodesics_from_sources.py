@@ -43,7 +43,11 @@ def sample(verts, faces, name, corres=None, path=None):
     shape = make_shape(verts, faces, name, path=path, normalization=None)
     n = shape.n_verts
     c = None if corres is None else torch.as_tensor(corres, dtype=torch.int64)
-    return ShapeSample(shape=shape, evals=torch.zeros(1), evecs=torch.ones(n, 1), mass=torch.ones(n), corres=c)
+    return ShapeSample(
+        shape=shape,
+        operators={"eigenbasis": {"evals": torch.zeros(1), "evecs": torch.ones(n, 1), "mass": torch.ones(n)}},
+        corres=c,
+    )
 
 
 def test_rows_equal_the_rows_of_the_full_solver_in_float32():

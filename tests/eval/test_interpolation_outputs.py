@@ -1,4 +1,4 @@
-"""Interpolation outputs (issue 6): sequence files, interpolation times, deformation metrics, LinearBlend.
+"""Interpolation outputs: sequence files, interpolation times, deformation metrics, LinearBlend.
 
 Uses the sphere dataset of tests/eval/conftest.py (permuted, rotated unit icospheres, 162 vertices).
 """
@@ -138,8 +138,7 @@ def test_linear_blend_frames(spheres):
     torch.testing.assert_close(result.deformation[3], 2 * y.verts[p2p] - x.verts)  # extrapolation
     default = blend.match(x, y)
     assert default.times.tolist() == [0.0, 0.25, 0.5, 0.75, 1.0] and default.deformation.shape[0] == 5
-    with pytest.warns(UserWarning, match="interp_times"):  # the old option name still works
-        assert LinearBlend(FixedMap(spheres), times=[0.0, 1.0]).match(x, y).times.tolist() == [0.0, 1.0]
+    assert LinearBlend(FixedMap(spheres), interp_times=[0.0, 1.0]).match(x, y).times.tolist() == [0.0, 1.0]
     assert LinearBlend(DescriptorNN("hks")).required_operators == {"hks": {}}
     with pytest.raises(ConfigError, match="wraps a matcher"):
         LinearBlend(object())

@@ -107,7 +107,7 @@ def test_neuromorph_face_listed_edges_equal_face_count_weights():
     expected = _original_arap(deformed, verts, faces)
     ours = arap_energy(verts, deformed, edges_w, edge_weights=counts.to(DTYPE), mode="average")
     assert float(ours) == pytest.approx(expected, rel=1e-12)
-    # the previous documentation's reading (both directions, 2 x counts) doubles it
+    # counting both directions of every edge (2 x counts) doubles it
     doubled = arap_energy(verts, deformed, edges_w, edge_weights=2.0 * counts.to(DTYPE), mode="average")
     assert float(doubled) == pytest.approx(2.0 * expected, rel=1e-12)
     # both-sides at 0.5 x counts: the original's number of residuals, hence the same order (not a factor 2)

@@ -54,9 +54,17 @@ pytestmark = pytest.mark.filterwarnings("ignore:You are trying to `self.log\\(\\
 def _sample(verts, faces, feats, name) -> ShapeSample:
     shape = make_shape(verts, faces, name)
     evals, evecs, mass = eigenbasis(shape.verts.numpy(), shape.faces.numpy(), N_EIG)
-    return ShapeSample(shape=shape, evals=torch.as_tensor(evals, dtype=torch.float32),
-                       evecs=torch.as_tensor(evecs, dtype=torch.float32),
-                       mass=torch.as_tensor(mass, dtype=torch.float32), features={"shot": torch.as_tensor(feats)})
+    return ShapeSample(
+        shape=shape,
+        operators={
+            "eigenbasis": {
+                "evals": torch.as_tensor(evals, dtype=torch.float32),
+                "evecs": torch.as_tensor(evecs, dtype=torch.float32),
+                "mass": torch.as_tensor(mass, dtype=torch.float32),
+            },
+            "shot": {"shot": torch.as_tensor(feats)},
+        },
+    )
 
 
 @pytest.fixture(scope="module")

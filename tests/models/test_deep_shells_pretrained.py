@@ -174,11 +174,15 @@ def test_released_weights_reproduce_the_original_features(compose_config):
     expected = torch.from_numpy(np.load(golden / f"original_output_{pair}.npz")["features_x"])
     sample = ShapeSample(
         shape=make_shape(inputs["x_verts"], inputs["x_faces"], "tr_reg_080"),
-        # the golden eigenvalues are in the original doubled (full cot) convention
-        evals=torch.from_numpy(inputs["x_evals"]) / ORIGINAL_EIGENVALUE_FACTOR,
-        evecs=torch.from_numpy(inputs["x_evecs"]),
-        mass=torch.from_numpy(inputs["x_mass"]),
-        features={"shot": torch.from_numpy(inputs["x_shot"])},
+        operators={
+            "eigenbasis": {
+                # the golden eigenvalues are in the original doubled (full cot) convention
+                "evals": torch.from_numpy(inputs["x_evals"]) / ORIGINAL_EIGENVALUE_FACTOR,
+                "evecs": torch.from_numpy(inputs["x_evecs"]),
+                "mass": torch.from_numpy(inputs["x_mass"]),
+            },
+            "shot": {"shot": torch.from_numpy(inputs["x_shot"])},
+        },
     )
     with torch.no_grad():
         ours = model.features(sample)

@@ -72,8 +72,11 @@ def _base_mesh():
 def _sample(verts, faces, name, corres) -> ShapeSample:
     shape = make_shape(verts, faces, name)
     n = shape.n_verts
-    return ShapeSample(shape=shape, evals=torch.zeros(0), evecs=torch.zeros(n, 0), mass=torch.ones(n),
-                       corres=torch.as_tensor(corres, dtype=torch.int64))
+    return ShapeSample(
+        shape=shape,
+        operators={"eigenbasis": {"evals": torch.zeros(0), "evecs": torch.zeros(n, 0), "mass": torch.ones(n)}},
+        corres=torch.as_tensor(corres, dtype=torch.int64),
+    )
 
 
 @pytest.fixture(scope="module")

@@ -167,7 +167,7 @@ def test_an_untrained_learned_model_is_evaluated_with_a_warning(checkpoint):
 
 
 def test_evaluate_warns_about_an_untrained_model(capsys):
-    from shapecorr.cli.evaluate import build_matcher
+    from shapecorr.cli.matcher_factory import build_matcher
 
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         cfg = compose("evaluate", overrides=["model=gmsm"])

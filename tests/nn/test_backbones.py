@@ -28,7 +28,10 @@ def _sample(n=60, k=24, channels=5) -> ShapeSample:
     verts = torch.randn(n, 3, generator=torch.Generator().manual_seed(1))
     faces = torch.tensor([[0, 1, 2]])
     feats = torch.randn(n, channels, generator=torch.Generator().manual_seed(2))
-    return ShapeSample(make_shape(verts.numpy(), faces.numpy(), "s"), evals, evecs, mass, features={"shot": feats})
+    return ShapeSample(
+        shape=make_shape(verts.numpy(), faces.numpy(), "s"),
+        operators={"eigenbasis": {"evals": evals, "evecs": evecs, "mass": mass}, "shot": {"shot": feats}},
+    )
 
 
 def test_spectral_backbone_is_the_filter_bank_on_the_sample():
