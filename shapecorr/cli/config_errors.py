@@ -11,6 +11,8 @@ the closest valid names instead:
   i.e. under an open map (an empty ``{}`` such as ``callbacks`` or ``data.operators.request``, or one of
   :data:`OPEN_MAPS`) or under a node with a ``_target_`` whose constructor takes that argument (``+trainer.
   accumulate_grad_batches=4``); otherwise the closest keys are suggested, never ``+``;
+- ``+group.key=value`` of a config group left unselected (``model: null``): accepted, the script builds that
+  node itself (a custom ``+model._target_=...``, or a checkpoint's recipe with the keys on top);
 - ``~key``: the key must exist.
 
 Keys of Hydra itself (``hydra.*``) are left to Hydra.
@@ -261,6 +263,10 @@ def check_overrides(config_dir: str | Path, config_name: str, overrides: list[st
             for override, prefix, key, first, _ in value_overrides:
                 if prefix in ("+", "++") and any(key == d or key.startswith(d + ".") for d in deleted):
                     continue  # re-added after a deletion (~key +key=...)
+                head = key.split(".")[0]
+                if prefix in ("+", "++") and head in groups and head not in base:
+                    continue  # a node of an unselected group (model: null): a custom `_target_`, or the
+                    # checkpoint's recipe with these keys on top (evaluate.py ckpt_path=CKPT +model.refine=false)
                 if prefix in ("+", "++") and f_in_config(base, key):
                     if prefix == "+":
                         raise ConfigError(f"+{key}: {key} is already in the config; write {key}={first}")

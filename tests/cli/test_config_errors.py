@@ -44,6 +44,8 @@ def test_unknown_names_suggest_the_closest(config, overrides, expected):
     ("train", ["hydra.run.dir=/tmp/x", "~logger"]),
     ("train", ["+data.synthetic.n_holes=1", "+data.synthetic.test_fraction=0.34"]),   # generator options
     ("evaluate", ["data=faust_r", "data.root=/x", "~data.splits.test", "+data.splits.test={names:[a,b]}"]),
+    ("evaluate", ["+model._target_=my_package.MyMatcher"]),   # a matcher of one's own, no model= group option
+    ("evaluate", ["ckpt_path=C", "+model.refine=false"]),     # keys on top of the checkpoint's recipe
 ])
 def test_valid_command_lines_pass(config, overrides):
     cfg = check_overrides(CONFIGS, config, overrides)
