@@ -67,7 +67,7 @@ CPU_BUDGET_OVERRIDES = (
     "callbacks.neuromorph_lambda_geo.milestones=[[0,50.0],[6,0.0]]",
     "test=false",
 )
-#: The "geodesic-map" variant (``--variant geodesic-map``; README, "NeuroMorph: why map_gradient exists"): only the
+#: The "geodesic-map" variant (``--variant geodesic-map``; docs/benchmarks.md, NeuroMorph section): only the
 #: geodesic term trains the soft maps, Adam 1e-3, the geodesic phase (T = 0, lambda_geo = 50) for 8 epochs of 640
 #: pairs, then T = 1 without it (the interpolator alone trains), 1 h 55 min.
 GEODESIC_MAP_OVERRIDES = tuple(

@@ -2,7 +2,7 @@
 
     python benchmarks/neuromorph_map_gradient.py [--faust-r DIR] [--steps 60] [--lr 1e-3] [--threads 1]
 
-A diagnostic behind ``model.map_gradient`` (README, "NeuroMorph: why map_gradient exists"). A fresh network is
+A diagnostic behind ``model.map_gradient`` (docs/benchmarks.md, its NeuroMorph section). A fresh network is
 trained on the same few training pairs (default 4: two pose-different pairs, both directions) at a fixed
 working resolution, without augmentation, one optimizer step per pass over the pairs, and the geodesic error of
 its argmax map on those very pairs is recorded every ``--log-every`` steps. Variants:
@@ -14,7 +14,7 @@ its argmax map on those very pairs is recorded every ``--log-every`` steps. Vari
   ``published`` from there (does the fitted map survive the registration gradient?);
 * ``original_preset``: ``published`` with the original code's choices (``model=neuromorph_original``: channel
   pooling, original residual init, ARAP "average" differentiated through the rotations at face-edge weights),
-  on the same heat geodesics, to compare with the original code's run on these pairs (README).
+  on the same heat geodesics, to compare with the original code's run on these pairs (docs/benchmarks.md).
 
 ``--variants`` selects a subset.
 

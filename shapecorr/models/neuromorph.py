@@ -54,7 +54,7 @@ frames and loss terms on identical inputs (``tests/models/test_neuromorph_parity
 Which terms train the features (``map_gradient``). Published: all of them. The registration term also moves the
 soft maps towards the interpolator's current end point, which early in training is far from any isometric map;
 measured on FAUST_r it holds the correspondence near 18 % error for the whole of a 2-hour CPU run while the
-geodesic term alone fits it. ``map_gradient="geodesic"`` lets only the geodesic term train the maps (README,
+geodesic term alone fits it. ``map_gradient="geodesic"`` lets only the geodesic term train the maps (docs/benchmarks.md,
 "NeuroMorph: why map_gradient exists").
 """
 
@@ -173,7 +173,7 @@ class NeuroMorph(CorrespondenceModule):
         term, including registration and ARAP through the interpolator's input ``Pi y``. "geodesic": only the
         geodesic-distortion term; registration and ARAP see the maps and ``Pi y`` detached and train the
         interpolator only (with the geodesic weight at 0 the feature net then gets no gradient). Settable by
-        an :class:`~shapecorr.models.schedules.EpochSchedule` (``target: map_gradient``). See README,
+        an :class:`~shapecorr.models.schedules.EpochSchedule` (``target: map_gradient``). See docs/benchmarks.md,
         "NeuroMorph: why map_gradient exists".
     arap_edge_weight_scale : float, optional
         ARAP edge weights = scale x (faces containing the edge); None = uniform weights. The original code
