@@ -24,7 +24,7 @@ import difflib
 import inspect
 from pathlib import Path
 
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from shapecorr.errors import ConfigError
 
@@ -202,10 +202,13 @@ def _accepts(node, parent_path: str, part: str) -> bool:
     return target is not None and (target[2] or part in target[1])
 
 
-def check_overrides(config_dir: str | Path, config_name: str, overrides: list[str]) -> DictConfig:
+def check_overrides(config_dir: str | Path, config_name: str, overrides: list[str],
+                    choices: dict[str, str] | None = None) -> DictConfig:
     """Compose ``config_name`` of ``config_dir`` with the command-line ``overrides``; unknown names raise.
 
     Sweeps (``model=a,b`` with ``-m``) are checked value by value and composed with their first value.
+    ``choices``, when given, receives the option selected for every config group (``{"data": "faust_r"}``), as
+    Hydra resolved the defaults lists: an experiment's ``override /data: faust_r`` included.
 
     Returns
     -------
@@ -275,9 +278,14 @@ def check_overrides(config_dir: str | Path, config_name: str, overrides: list[st
             flat = group_overrides + [text if not o.is_sweep_override() or first is None
                                       else f"{prefix}{key}={first}" for o, prefix, key, first, text in value_overrides]
             try:
-                return compose(config_name, overrides=flat)
+                cfg = compose(config_name, overrides=flat, return_hydra_config=choices is not None)
             except HydraException as err:
                 raise ConfigError(f"invalid configuration: {_one_line(err)}") from None
+            if choices is not None:
+                choices.update({str(k): str(v) for k, v in cfg.hydra.runtime.choices.items()})
+                with open_dict(cfg):
+                    del cfg["hydra"]
+            return cfg
     finally:
         GlobalHydra.instance().clear()
 

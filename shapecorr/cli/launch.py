@@ -71,8 +71,8 @@ def check_command_line(script: str | Path, config_name: str, description: str | 
     if overrides is None:
         return
     try:
-        cfg = check_overrides(config_dir, config_name, overrides)
-        choices = _choices(config_dir, config_name, overrides)
+        choices: dict[str, str] = {}
+        cfg = check_overrides(config_dir, config_name, overrides, choices)
         early_checks(cfg, config_name, choices)
     except ShapeCorrError as err:
         print(f"error: {err}", file=sys.stderr)
@@ -84,18 +84,6 @@ def _config_dir(script: Path) -> Path:
         if candidate.is_dir():
             return candidate
     raise FileNotFoundError(f"no configs/ folder next to {script}")
-
-
-def _choices(config_dir: Path, config_name: str, overrides: list[str]) -> dict[str, str]:
-    """The option chosen for each top-level group of the primary config (defaults, then command line)."""
-    choices = {}
-    for group, option in _default_groups(config_dir / f"{config_name}.yaml"):
-        choices[group] = option
-    for text in overrides:
-        key, _, value = text.lstrip("+~").partition("=")
-        if key in choices:
-            choices[key] = value.split(",")[0]
-    return choices
 
 
 def early_checks(cfg: DictConfig, config_name: str, choices: dict[str, str]) -> None:

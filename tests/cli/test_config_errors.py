@@ -75,6 +75,8 @@ def _run(script, *args, env=None):
     ("evaluate.py", ["model=descriptor_nn", "data=faust_r"], "SHAPECORR_FAUST_R"),
     ("evaluate.py", ["model=deep_shells_published", "data=folder", f"data.root={REPO / 'configs'}"],
      "SHAPECORR_DEEP_SHELLS_WEIGHTS"),
+    # the data group the experiment selects, not the script's default
+    ("train.py", ["experiment=deep_shells_faust_r", "data.root=/nonexistent"], "data=faust_r needs a folder"),
 ])
 def test_scripts_stop_with_one_line(script, args, expected):
     proc = _run(script, *args, env={"SHAPECORR_FAUST_R": "", "SHAPECORR_DEEP_SHELLS_WEIGHTS": ""})
