@@ -50,8 +50,8 @@ from shapecorr.geometry.mesh_graph import undirected_edges
 from shapecorr.geometry.normals import vertex_normals
 from shapecorr.geometry.sampling import farthest_point_sampling
 from shapecorr.geometry.shells import sigmoid_shell_weights, spectral_coefficients
+from shapecorr.geometry.spectral_shape import SpectralShape, make_spectral_shape
 from shapecorr.losses.arap import arap_rotations
-from shapecorr.matching.deep_shells import SpectralShape, make_spectral_shape
 from shapecorr.matching.least_squares import DEFAULT_RIDGE
 from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
 from shapecorr.matching.result import MatchResult
