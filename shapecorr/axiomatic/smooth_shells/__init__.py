@@ -20,13 +20,10 @@ of the eigenfunctions. Pipeline (:func:`smooth_shells`):
    resolution, with ARAP (weight ``0.02 sqrt(max(k - 20, 0))``) in the ``tau`` solve and area preservation
    (orthogonal ``C``).
 
-One layer (:func:`_match_layer`) of size k: sigmoid shells ``X_k``, ``Y_k``; ``X* = X_k + Phi_X[:, :k] tau``;
-for each of ``num_sub`` rounds: correspondences by nearest neighbours between
-``[X*, a_n n(X*), a_f (Phi_X C)[:, :k_prev] w_prev]`` and ``[Y_k, a_n n(Y_k), a_f Phi_Y[:, :k_prev] w_prev]``
-(``C``, ``w_prev``: previous layer's map and sigmoid weights); ``tau[:k]`` minimizing
-``sum_i |X*_i - Y_k[pi(i)]|^2 + sum_j |X*_{pi'(j)} - Y_k,j|^2 + l_arap E_arap(tau)`` (rotations of the
-current ``X*`` frozen); ``C`` (size k + 9) by area-weighted least squares on the same pairs plus the
-descriptor term, then projected onto the orthogonal matrices.
+One layer of the layered matching: :mod:`shapecorr.axiomatic.smooth_shells.layers`. Modules: ``config``
+(hyperparameters, schedule), ``shapes`` (inputs, result, basis features), ``layers``, ``surrogates`` (the short
+runs of the rigid stage and the random search), ``rigid``, ``random_search``, ``pipeline`` (:func:`smooth_shells`,
+:func:`refine`), ``matcher`` (:class:`SmoothShells` for evaluate.py).
 
 All of it is torch on any device (the precomputed SHOT / HKS come from :mod:`shapecorr.geometry`);
 least-squares solves are float64 with the project's relative ridge. Decisions on the ambiguous points of the
