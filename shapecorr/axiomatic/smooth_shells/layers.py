@@ -1,6 +1,6 @@
 """Layered matching of Smooth Shells: one layer of size k and a sequence of layers, for a batch of poses of X.
 
-One layer (:func:`_match_layer`) of size k: sigmoid shells ``X_k``, ``Y_k``; ``X* = X_k + Phi_X[:, :k] tau``;
+One layer (:func:`match_layer`) of size k: sigmoid shells ``X_k``, ``Y_k``; ``X* = X_k + Phi_X[:, :k] tau``;
 for each of ``num_sub`` rounds: correspondences by nearest neighbours between
 ``[X*, a_n n(X*), a_f (Phi_X C)[:, :k_prev] w_prev]`` and ``[Y_k, a_n n(Y_k), a_f Phi_Y[:, :k_prev] w_prev]``
 (``C``, ``w_prev``: previous layer's map and sigmoid weights); ``tau[:k]`` minimizing
@@ -31,7 +31,7 @@ from shapecorr.axiomatic.smooth_shells.config import K_START, NORMAL_K_MIN
 from shapecorr.axiomatic.smooth_shells.shapes import ShellsShape
 
 
-class _Pair:
+class PairTensors:
     """Per-pair tensors shared by all stages (Y fixed; X's pose may change)."""
 
     def __init__(self, x: ShellsShape, y: ShellsShape, feats, need_arap: bool):
@@ -75,12 +75,12 @@ class _Pair:
     def shell_y(self, k: int) -> tuple[torch.Tensor, torch.Tensor]:
         """``Y_k`` (n_y, 3) and its normals, cached."""
         if k not in self._shell_y:
-            sy = _shell(self.phi_y, self.coeffs_y[None], k)[0]
+            sy = shells_of_poses(self.phi_y, self.coeffs_y[None], k)[0]
             self._shell_y[k] = (sy, vertex_normals(sy, self.faces_y))
         return self._shell_y[k]
 
 
-def _batched_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+def batched_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """Vertex normals ``(B, n, 3)`` of a batch of poses ``(B, n, 3)`` of one mesh, pose by pose.
 
     Faster on the CPU than one batched gather / index_add over the middle dimension (46 vs 89 ms for
@@ -89,7 +89,7 @@ def _batched_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     return torch.stack([vertex_normals(v, faces) for v in verts])
 
 
-def _shell(evecs: torch.Tensor, coeffs: torch.Tensor, k: int) -> torch.Tensor:
+def shells_of_poses(evecs: torch.Tensor, coeffs: torch.Tensor, k: int) -> torch.Tensor:
     """Sigmoid shells of a batch of poses: ``(B, n, 3)`` from ``coeffs (B, K, 3)``."""
     w = sigmoid_shell_weights(k, dtype=evecs.dtype, device=evecs.device)
     kk = w.shape[0]
@@ -123,7 +123,7 @@ def _scatter_rows(n: int, index: torch.Tensor, values: torch.Tensor) -> torch.Te
     return out.scatter_add_(1, index[:, :, None].expand(-1, -1, values.shape[2]), values)
 
 
-def _gather_rows(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+def gather_rows(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """``values (B or 1, n, c)`` at rows ``index (B, r)`` -> ``(B, r, c)``."""
     if values.shape[0] == 1 and index.shape[0] > 1:
         values = values.expand(index.shape[0], -1, -1)
@@ -131,7 +131,7 @@ def _gather_rows(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
 
 
 @dataclass
-class _Run:
+class RunSettings:
     """Settings of one layered run (main, surrogate or proposal)."""
 
     fac_feat: float
@@ -151,7 +151,7 @@ class _Run:
 
 
 @dataclass
-class _State:
+class LayerState:
     """What a layer carries to the next: pose of X, ``tau``, ``C`` and the previous sigmoid weights."""
 
     verts_x: torch.Tensor  # (B, n, 3)
@@ -164,7 +164,7 @@ class _State:
     objectives: list = field(default_factory=list)
 
 
-def _embedding_scales(pair: _Pair, shell_y, normals_y, k_prev, fac_feat, damping):
+def embedding_scales(pair: PairTensors, shell_y, normals_y, k_prev, fac_feat, damping):
     """Weights of the spectral block and of the normals, from Y (shared by both sides; docs/smooth_shells.md §6)."""
     y_norm = shell_y.norm()
     fac_n = damping * y_norm / normals_y.norm().clamp_min(1e-30)
@@ -174,10 +174,10 @@ def _embedding_scales(pair: _Pair, shell_y, normals_y, k_prev, fac_feat, damping
     return fac_s, fac_n
 
 
-def _embeddings(pair: _Pair, st: _State, deformed, normals_x, shell_y, normals_y, fac_feat, damping):
+def product_embeddings(pair: PairTensors, st: LayerState, deformed, normals_x, shell_y, normals_y, fac_feat, damping):
     """Full-resolution product embeddings ``(B, n_x, d)``, ``(1, n_y, d)``."""
-    fac_s, fac_n = _embedding_scales(pair, shell_y, normals_y, st.k_prev if st.fmap is not None else 0,
-                                     fac_feat, damping)
+    fac_s, fac_n = embedding_scales(pair, shell_y, normals_y, st.k_prev if st.fmap is not None else 0,
+                                    fac_feat, damping)
     ex = [deformed]
     ey = [shell_y[None]]
     if fac_n > 0:
@@ -192,7 +192,7 @@ def _embeddings(pair: _Pair, st: _State, deformed, normals_x, shell_y, normals_y
     return torch.cat(ex, -1), torch.cat(ey, -1)
 
 
-def _correspondences(pair: _Pair, run: _Run, emb_x, emb_y):
+def nearest_pairs(pair: PairTensors, run: RunSettings, emb_x, emb_y):
     """Assignments X samples -> Y (B, s) and Y samples -> X (B, s'), as full vertex indices."""
     sx, sy = run.samples_x, run.samples_y
     b = emb_x.shape[0]
@@ -248,18 +248,18 @@ def _row_normal_equations(phi: torch.Tensor, rows: torch.Tensor, values: torch.T
     return torch.matmul(phi.transpose(0, 1), counts * phi), torch.matmul(phi.transpose(0, 1), summed)
 
 
-def _tau_system(pair: _Pair, run: _Run, shell_x, shell_y, assign, assign_inv, k):
+def _tau_system(pair: PairTensors, run: RunSettings, shell_x, shell_y, assign, assign_inv, k):
     """Data part of the ``tau`` normal equations (not area weighted, as in the original): (B, k, k), (B, k, 3)."""
     b = shell_x.shape[0]
     sx, sy = run.samples_x[None].expand(b, -1), run.samples_y[None].expand(b, -1)
     sx64, sy64 = shell_x.to(torch.float64), shell_y.to(torch.float64)[None]
     rows = torch.cat([sx, assign_inv], 1)
-    target = torch.cat([_gather_rows(sy64, assign) - _gather_rows(sx64, sx),
-                        _gather_rows(sy64, sy) - _gather_rows(sx64, assign_inv)], 1)
+    target = torch.cat([gather_rows(sy64, assign) - gather_rows(sx64, sx),
+                        gather_rows(sy64, sy) - gather_rows(sx64, assign_inv)], 1)
     return _row_normal_equations(pair.phi_x64[:, :k], rows, target)
 
 
-def _arap_system(pair: _Pair, shell_x, deformed, k):
+def _arap_system(pair: PairTensors, shell_x, deformed, k):
     """ARAP part with the rotations of the current ``X*`` frozen: ``(B, k, k)``, ``(B, k, 3)``, rotations."""
     rot = arap_rotations(shell_x, deformed, pair.edges_x).to(torch.float64)  # (B, n, 3, 3): e_X* ~ R e_Xk
     a, b = pair.edges_x[:, 0], pair.edges_x[:, 1]
@@ -280,8 +280,8 @@ def _tau_objective(pair, run, shell_x, shell_y, assign, assign_inv, tau, k, rot,
     b = cur.shape[0]
     sx = run.samples_x[None].expand(b, -1)
     sy = run.samples_y[None].expand(b, -1)
-    data = (_gather_rows(cur, sx) - _gather_rows(sy64, assign)).square().sum((1, 2))
-    data = data + (_gather_rows(cur, assign_inv) - _gather_rows(sy64, sy)).square().sum((1, 2))
+    data = (gather_rows(cur, sx) - gather_rows(sy64, assign)).square().sum((1, 2))
+    data = data + (gather_rows(cur, assign_inv) - gather_rows(sy64, sy)).square().sum((1, 2))
     if rot is None:
         return data
     a, bb = pair.edges_x[:, 0], pair.edges_x[:, 1]
@@ -293,7 +293,7 @@ def _tau_objective(pair, run, shell_x, shell_y, assign, assign_inv, tau, k, rot,
     return data + arap_weight * arap
 
 
-def _functional_map(pair: _Pair, run: _Run, kk: int, assign=None, assign_inv=None, batch: int = 1):
+def functional_map(pair: PairTensors, run: RunSettings, kk: int, assign=None, assign_inv=None, batch: int = 1):
     """Functional map of size ``kk`` (B, kk, kk): area-weighted pairs, descriptors, Laplacian, orthogonality."""
     f64 = torch.float64
     if assign is not None:
@@ -301,7 +301,7 @@ def _functional_map(pair: _Pair, run: _Run, kk: int, assign=None, assign_inv=Non
         sx, sy = run.samples_x[None].expand(b, -1), run.samples_y[None].expand(b, -1)
         rows = torch.cat([sx, assign_inv], 1)
         phi_y = pair.phi_y64[:, :kk][None]
-        targets = torch.cat([_gather_rows(phi_y, assign), _gather_rows(phi_y, sy)], 1)
+        targets = torch.cat([gather_rows(phi_y, assign), gather_rows(phi_y, sy)], 1)
         gram, rhs = _row_normal_equations(pair.phi_x64[:, :kk], rows, targets, pair.mass_x.to(f64))
         lambda_feat = run.lambda_feat
     else:
@@ -342,11 +342,11 @@ def _functional_map(pair: _Pair, run: _Run, kk: int, assign=None, assign_inv=Non
     return fmap
 
 
-def _match_layer(pair: _Pair, run: _Run, st: _State, k: int, first_pairs=None) -> _State:
+def match_layer(pair: PairTensors, run: RunSettings, st: LayerState, k: int, first_pairs=None) -> LayerState:
     """One layer of size ``k`` (``run.num_sub`` rounds), updating ``st`` in place; see the module docstring."""
     w = sigmoid_shell_weights(k, dtype=pair.dtype, device=pair.device)
     kk = w.shape[0]
-    shell_x = _shell(pair.phi_x, st.coeffs_x, k)  # (B, n, 3)
+    shell_x = shells_of_poses(pair.phi_x, st.coeffs_x, k)  # (B, n, 3)
     shell_y, normals_y = pair.shell_y(k)
     damping = run.normal_damping if k > NORMAL_K_MIN else 0.0
     lambda_arap = run.lambda_arap_init * math.sqrt(max(k - K_START, 0))
@@ -356,9 +356,9 @@ def _match_layer(pair: _Pair, run: _Run, st: _State, k: int, first_pairs=None) -
         if first_pairs is not None and sub == 0:
             assign, assign_inv = first_pairs
         else:
-            normals_x = _batched_normals(deformed, pair.faces_x) if damping > 0 else None
-            emb_x, emb_y = _embeddings(pair, st, deformed, normals_x, shell_y, normals_y, run.fac_feat, damping)
-            assign, assign_inv = _correspondences(pair, run, emb_x, emb_y)
+            normals_x = batched_normals(deformed, pair.faces_x) if damping > 0 else None
+            emb_x, emb_y = product_embeddings(pair, st, deformed, normals_x, shell_y, normals_y, run.fac_feat, damping)
+            assign, assign_inv = nearest_pairs(pair, run, emb_x, emb_y)
         gram, rhs = _tau_system(pair, run, shell_x, shell_y, assign, assign_inv, k)
         rot, weight = None, 0.0
         if lambda_arap > 0:
@@ -377,16 +377,18 @@ def _match_layer(pair: _Pair, run: _Run, st: _State, k: int, first_pairs=None) -
         if run.record:
             after = _tau_objective(pair, run, shell_x, shell_y, assign, assign_inv, st.tau, k, rot, weight)
             st.objectives.append(torch.stack([before[0], after[0]]))
-        st.fmap = _functional_map(pair, run, kk, assign, assign_inv)
+        st.fmap = functional_map(pair, run, kk, assign, assign_inv)
         st.pairs = (assign, assign_inv)
         st.k_prev, st.w_prev = k, w  # the next round already embeds with this C (as the original)
     return st
 
 
-def _layered(pair: _Pair, run: _Run, st: _State, ks, first_pairs=None, cfix_k_max: int = K_START) -> _State:
+def match_layers(pair: PairTensors, run: RunSettings, st: LayerState, ks, first_pairs=None,
+                 cfix_k_max: int = K_START) -> LayerState:
+    """Layers of the sizes ``ks`` in turn (``first_pairs``: the first layer's pairs; ``run.cfix`` up to cfix_k_max)."""
     cfix = run.cfix
     for i, k in enumerate(ks):
         run.cfix = cfix if (cfix is not None and k <= cfix_k_max) else None
-        _match_layer(pair, run, st, k, first_pairs if i == 0 else None)
+        match_layer(pair, run, st, k, first_pairs if i == 0 else None)
     run.cfix = cfix
     return st

@@ -10,7 +10,7 @@ from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.geometry.shells import spectral_coefficients
 
 from shapecorr.axiomatic.smooth_shells.config import K_START, SmoothShellsConfig, k_schedule
-from shapecorr.axiomatic.smooth_shells.layers import _layered, _match_layer, _Pair, _Run, _State
+from shapecorr.axiomatic.smooth_shells.layers import LayerState, PairTensors, RunSettings, match_layer, match_layers
 from shapecorr.axiomatic.smooth_shells.random_search import random_search_init
 from shapecorr.axiomatic.smooth_shells.rigid import rigid_alignment
 from shapecorr.axiomatic.smooth_shells.shapes import ShellsShape, SmoothShellsResult, basis_features
@@ -27,20 +27,20 @@ def _check_inputs(x: ShellsShape, y: ShellsShape, config: SmoothShellsConfig):
 
 
 def _main_run(x, y, config, feats, aligned, tau_init, cfix, ks, first_pairs=None):
-    pair = _Pair(x, y, feats if config.lambda_feat > 0 else None, need_arap=config.lambda_arap_init > 0)
+    pair = PairTensors(x, y, feats if config.lambda_feat > 0 else None, need_arap=config.lambda_arap_init > 0)
     dev = aligned.device
     coeffs = spectral_coefficients(x.spectral.evecs, x.spectral.mass, aligned)
     tau = torch.zeros(1, config.k_max, 3, dtype=torch.float64, device=dev)
     if tau_init is not None:
         tau[0, :tau_init.shape[0]] = tau_init.to(torch.float64)
-    st = _State(verts_x=aligned[None], coeffs_x=coeffs[None], tau=tau, fmap=None)
-    run = _Run(fac_feat=config.fac_feat, normal_damping=config.normal_damping, lambda_feat=config.lambda_feat,
-               lambda_lap=torch.tensor([config.lambda_lap]), lambda_arap_init=config.lambda_arap_init,
-               area_preservation=config.area_preservation, num_sub=1, mode=2,
-               samples_x=torch.arange(x.spectral.n_verts, device=dev),
-               samples_y=torch.arange(y.spectral.n_verts, device=dev), ridge=config.ridge,
-               nn_backend=config.nn_backend, cfix=None if cfix is None else cfix[None], record=True)
-    _layered(pair, run, st, ks, first_pairs)
+    st = LayerState(verts_x=aligned[None], coeffs_x=coeffs[None], tau=tau, fmap=None)
+    run = RunSettings(fac_feat=config.fac_feat, normal_damping=config.normal_damping, lambda_feat=config.lambda_feat,
+                      lambda_lap=torch.tensor([config.lambda_lap]), lambda_arap_init=config.lambda_arap_init,
+                      area_preservation=config.area_preservation, num_sub=1, mode=2,
+                      samples_x=torch.arange(x.spectral.n_verts, device=dev),
+                      samples_y=torch.arange(y.spectral.n_verts, device=dev), ridge=config.ridge,
+                      nn_backend=config.nn_backend, cfix=None if cfix is None else cfix[None], record=True)
+    match_layers(pair, run, st, ks, first_pairs)
     return st
 
 
@@ -141,20 +141,21 @@ def refine(x: ShellsShape, y: ShellsShape, initial_map: torch.Tensor, k_start: i
         else:
             first = (initial_map[None], initial_map_inv[None])
             samples_y_first = None
-        pair = _Pair(x, y, feats if config.lambda_feat > 0 else None, need_arap=config.lambda_arap_init > 0)
+        pair = PairTensors(x, y, feats if config.lambda_feat > 0 else None, need_arap=config.lambda_arap_init > 0)
         coeffs = spectral_coefficients(x.spectral.evecs, x.spectral.mass, aligned)
-        st = _State(verts_x=aligned[None], coeffs_x=coeffs[None],
-                    tau=torch.zeros(1, config.k_max, 3, dtype=torch.float64, device=dev), fmap=None)
-        run = _Run(fac_feat=config.fac_feat, normal_damping=config.normal_damping, lambda_feat=config.lambda_feat,
-                   lambda_lap=torch.tensor([config.lambda_lap]), lambda_arap_init=config.lambda_arap_init,
-                   area_preservation=config.area_preservation, num_sub=1, mode=2,
-                   samples_x=torch.arange(n_x, device=dev), samples_y=torch.arange(n_y, device=dev),
-                   ridge=config.ridge, nn_backend=config.nn_backend, record=True)
+        st = LayerState(verts_x=aligned[None], coeffs_x=coeffs[None],
+                        tau=torch.zeros(1, config.k_max, 3, dtype=torch.float64, device=dev), fmap=None)
+        run = RunSettings(fac_feat=config.fac_feat, normal_damping=config.normal_damping,
+                          lambda_feat=config.lambda_feat, lambda_lap=torch.tensor([config.lambda_lap]),
+                          lambda_arap_init=config.lambda_arap_init,
+                          area_preservation=config.area_preservation, num_sub=1, mode=2,
+                          samples_x=torch.arange(n_x, device=dev), samples_y=torch.arange(n_y, device=dev),
+                          ridge=config.ridge, nn_backend=config.nn_backend, record=True)
         if samples_y_first is not None:  # one-sided first layer: no Y -> X pairs
             if len(ks) == 1:
                 ks = ks + ks  # a second layer searches both directions
-            _match_layer(pair, replace(run, samples_y=samples_y_first), st, ks[0], first)
-            _layered(pair, run, st, ks[1:])
+            match_layer(pair, replace(run, samples_y=samples_y_first), st, ks[0], first)
+            match_layers(pair, run, st, ks[1:])
         else:
-            _layered(pair, run, st, ks, first)
+            match_layers(pair, run, st, ks, first)
         return _result(x, st, aligned, rot, trans, ks)

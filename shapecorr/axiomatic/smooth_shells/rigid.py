@@ -19,14 +19,21 @@ from shapecorr.geometry.spectral_shape import SpectralShape
 from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
 
 from shapecorr.axiomatic.smooth_shells.config import K_START, RIGID_K_MIN, SmoothShellsConfig
-from shapecorr.axiomatic.smooth_shells.layers import _functional_map, _layered, _Pair, _Run, _shell, _State
+from shapecorr.axiomatic.smooth_shells.layers import (
+    LayerState,
+    PairTensors,
+    RunSettings,
+    functional_map,
+    match_layers,
+    shells_of_poses,
+)
 from shapecorr.axiomatic.smooth_shells.shapes import ShellsShape
 from shapecorr.axiomatic.smooth_shells.surrogates import (
-    _descriptor_block,
-    _fps,
-    _reattach_detail,
-    _score,
-    _side_by_side,
+    descriptor_block,
+    farthest_samples,
+    reattach_detail,
+    side_by_side,
+    surrogate_score,
 )
 
 
@@ -135,8 +142,8 @@ def rigid_alignment(x: ShellsShape, y: ShellsShape, config: SmoothShellsConfig =
         return v / v.square().mean(0).clamp_min(1e-30)
 
     cur = apply(rot, trans)
-    samples_x = _fps(hard6(sx, cur), config.problem_size_init, gen)
-    samples_y = _fps(hard6(sy, sy.verts), config.problem_size_init, gen)
+    samples_x = farthest_samples(hard6(sx, cur), config.problem_size_init, gen)
+    samples_y = farthest_samples(hard6(sy, sy.verts), config.problem_size_init, gen)
     r_icp = _axis_icp(cur[samples_x], sy.verts[samples_y].to(torch.float64), dir_y, config.icp_iterations)
     centre = cur[samples_x].mean(0)
     rot = r_icp @ rot
@@ -144,18 +151,19 @@ def rigid_alignment(x: ShellsShape, y: ShellsShape, config: SmoothShellsConfig =
     # (c) area-weighted centroids
     trans = trans + _area_centroid(sy.verts.to(torch.float64), m_y) - _area_centroid(apply(rot, trans), m_x)
     # (d) surrogate runs resolving flips
-    pair = _Pair(x, y, feats, need_arap=False)
-    samples_x = _fps(apply(rot, trans).to(dtype), config.problem_size_init, gen)
-    samples_y = _fps(sy.verts, config.problem_size_init, gen)
-    run = _Run(fac_feat=config.rigid_fac_feat, normal_damping=config.rigid_normal_damping,
-               lambda_feat=config.lambda_feat, lambda_lap=torch.tensor([config.rigid_lambda_lap]),
-               lambda_arap_init=0.0, area_preservation=config.area_preservation, num_sub=config.rigid_num_sub,
-               mode=1, samples_x=samples_x, samples_y=samples_y, ridge=config.ridge, nn_backend=config.nn_backend)
+    pair = PairTensors(x, y, feats, need_arap=False)
+    samples_x = farthest_samples(apply(rot, trans).to(dtype), config.problem_size_init, gen)
+    samples_y = farthest_samples(sy.verts, config.problem_size_init, gen)
+    run = RunSettings(fac_feat=config.rigid_fac_feat, normal_damping=config.rigid_normal_damping,
+                      lambda_feat=config.lambda_feat, lambda_lap=torch.tensor([config.rigid_lambda_lap]),
+                      lambda_arap_init=0.0, area_preservation=config.area_preservation, num_sub=config.rigid_num_sub,
+                      mode=1, samples_x=samples_x, samples_y=samples_y, ridge=config.ridge,
+                      nn_backend=config.nn_backend)
     w_init = sigmoid_shell_weights(K_START, dtype=dtype, device=dev)
-    c_init = _functional_map(pair, replace(run, lambda_lap=torch.tensor([0.0])), w_init.shape[0], batch=1)
-    normals_y_full = vertex_normals(_shell(pair.phi_y, sy.coeffs[None], config.k_max)[0], sy.faces)
+    c_init = functional_map(pair, replace(run, lambda_lap=torch.tensor([0.0])), w_init.shape[0], batch=1)
+    normals_y_full = vertex_normals(shells_of_poses(pair.phi_y, sy.coeffs[None], config.k_max)[0], sy.faces)
     y_centroid = _area_centroid(sy.verts.to(torch.float64), m_y)
-    descriptors = _descriptor_block(pair, feats, config.score_descriptors)
+    descriptors = descriptor_block(pair, feats, config.score_descriptors)
     for k in range(RIGID_K_MIN, K_START + 1):
         pair.shell_y(k)  # fill the cache of Y's shells before the candidates share it
 
@@ -174,19 +182,20 @@ def rigid_alignment(x: ShellsShape, y: ShellsShape, config: SmoothShellsConfig =
             verts_b = torch.stack([apply(r_c, t_c) for r_c, t_c in chunk]).to(dtype)
             coeffs_b = torch.stack([spectral_coefficients(sx.evecs, sx.mass, v) for v in verts_b])
             b = verts_b.shape[0]
-            st = _State(verts_x=verts_b, coeffs_x=coeffs_b,
-                        tau=torch.zeros(b, K_START, 3, dtype=torch.float64, device=dev),
-                        fmap=c_init.expand(b, -1, -1), k_prev=K_START, w_prev=w_init)
+            st = LayerState(verts_x=verts_b, coeffs_x=coeffs_b,
+                            tau=torch.zeros(b, K_START, 3, dtype=torch.float64, device=dev),
+                            fmap=c_init.expand(b, -1, -1), k_prev=K_START, w_prev=w_init)
             run_b = replace(run, lambda_lap=torch.full((b,), config.rigid_lambda_lap))
-            _layered(pair, run_b, st, range(RIGID_K_MIN, K_START + 1))
-            full = _reattach_detail(pair, verts_b, coeffs_b, st.tau, K_START)
-            return _score(pair, run_b, st, full, config.rigid_fac_feat, config.rigid_normal_damping, normals_y_full,
-                          descriptors)
+            match_layers(pair, run_b, st, range(RIGID_K_MIN, K_START + 1))
+            full = reattach_detail(pair, verts_b, coeffs_b, st.tau, K_START)
+            return surrogate_score(pair, run_b, st, full, config.rigid_fac_feat, config.rigid_normal_damping,
+                                   normals_y_full,
+                                   descriptors)
 
         threads = torch.get_num_threads() if dev.type == "cpu" else 1  # one batch per thread (side by side)
         per_thread = -(-len(poses) // max(1, threads))
         chunks = [poses[i:i + per_thread] for i in range(0, len(poses), per_thread)]
-        return torch.cat(_side_by_side(surrogate, chunks, dev)), poses
+        return torch.cat(side_by_side(surrogate, chunks, dev)), poses
 
     all_scores = []
     count3, count1 = config.rigid_rotations

@@ -1,8 +1,8 @@
 """The short surrogate runs of the rigid stage and of the random search: samples, scores, running side by side.
 
 A surrogate run matches farthest-point samples through the layers k <= 20 (:mod:`.layers`); its result is
-scored after re-attaching X's detail (:func:`_score`, lower is better). Independent batches of surrogate runs
-run side by side on the CPU threads (:func:`_side_by_side`).
+scored after re-attaching X's detail (:func:`surrogate_score`, lower is better). Independent batches of surrogate runs
+run side by side on the CPU threads (:func:`side_by_side`).
 """
 
 from __future__ import annotations
@@ -17,19 +17,19 @@ from shapecorr.geometry.sampling import farthest_point_sampling
 from shapecorr.losses.arap import arap_rotations
 
 from shapecorr.axiomatic.smooth_shells.layers import (
-    _batched_normals,
-    _correspondences,
-    _embedding_scales,
-    _embeddings,
-    _gather_rows,
-    _Pair,
-    _Run,
-    _shell,
-    _State,
+    LayerState,
+    PairTensors,
+    RunSettings,
+    batched_normals,
+    embedding_scales,
+    gather_rows,
+    nearest_pairs,
+    product_embeddings,
+    shells_of_poses,
 )
 
 
-def _side_by_side(fn, items: list, device: torch.device) -> list:
+def side_by_side(fn, items: list, device: torch.device) -> list:
     """``[fn(item) for item in items]``, on the CPU with the items spread over torch's thread count.
 
     The surrogate runs of the random search and of the rigid stage are independent batches of small tensors,
@@ -52,20 +52,20 @@ def _side_by_side(fn, items: list, device: torch.device) -> list:
         torch.set_num_threads(previous)
 
 
-def _reattach_detail(pair: _Pair, verts_x, coeffs_x, tau, k):
+def reattach_detail(pair: PairTensors, verts_x, coeffs_x, tau, k):
     """``R_i (X - X_k) + X_k + Phi tau``: the detail of X rotated by the per-vertex ARAP rotations of the shell.
 
     Returns
     -------
     (B, n, 3) float
     """
-    shell_x = _shell(pair.phi_x, coeffs_x, k)
+    shell_x = shells_of_poses(pair.phi_x, coeffs_x, k)
     shifted = shell_x + torch.matmul(pair.phi_x[:, :k], tau[:, :k].to(pair.dtype))
     rot = arap_rotations(shell_x, shifted, pair.edges_x)
     return torch.matmul(rot, (verts_x - shell_x)[..., None])[..., 0] + shifted
 
 
-def _descriptor_block(pair: _Pair, feats, weight: float):
+def descriptor_block(pair: PairTensors, feats, weight: float):
     """Per-vertex basis features ``Phi F`` of X (n_x, c) and Y (n_y, c), scaled to ``weight * ||Y||``.
 
     None when ``weight == 0``; ``feats``: :func:`basis_features` (required otherwise).
@@ -81,15 +81,16 @@ def _descriptor_block(pair: _Pair, feats, weight: float):
     return scale * desc_x, scale * desc_y
 
 
-def _score(pair: _Pair, run: _Run, st: _State, full_x, fac_feat, damping, normals_y_full, descriptors=None):
+def surrogate_score(pair: PairTensors, run: RunSettings, st: LayerState, full_x, fac_feat, damping, normals_y_full,
+                    descriptors=None):
     """Area-weighted residual of the correspondences of the re-attached shapes (lower is better): (B,).
 
-    ``descriptors`` (:func:`_descriptor_block`) add the descriptor disagreement of the pairs to the residual.
+    ``descriptors`` (:func:`descriptor_block`) add the descriptor disagreement of the pairs to the residual.
     """
-    normals_x = _batched_normals(full_x, pair.faces_x)
-    emb_x, emb_y = _embeddings(pair, st, full_x, normals_x, pair.verts_y, normals_y_full, fac_feat, damping)
-    assign, assign_inv = _correspondences(pair, run, emb_x, emb_y)
-    _, fac_n = _embedding_scales(pair, pair.verts_y, normals_y_full, 0, fac_feat, damping)
+    normals_x = batched_normals(full_x, pair.faces_x)
+    emb_x, emb_y = product_embeddings(pair, st, full_x, normals_x, pair.verts_y, normals_y_full, fac_feat, damping)
+    assign, assign_inv = nearest_pairs(pair, run, emb_x, emb_y)
+    _, fac_n = embedding_scales(pair, pair.verts_y, normals_y_full, 0, fac_feat, damping)
     px = torch.cat([full_x, fac_n * normals_x], -1)
     py = torch.cat([pair.verts_y, fac_n * normals_y_full], -1)[None]
     if descriptors is not None:
@@ -98,13 +99,13 @@ def _score(pair: _Pair, run: _Run, st: _State, full_x, fac_feat, damping, normal
         py = torch.cat([py, desc_y[None]], -1)
     b = full_x.shape[0]
     sx, sy = run.samples_x[None].expand(b, -1), run.samples_y[None].expand(b, -1)
-    d = (_gather_rows(px, sx) - _gather_rows(py, assign)).norm(dim=-1)
-    d_inv = (_gather_rows(px, assign_inv) - _gather_rows(py, sy)).norm(dim=-1)
+    d = (gather_rows(px, sx) - gather_rows(py, assign)).norm(dim=-1)
+    d_inv = (gather_rows(px, assign_inv) - gather_rows(py, sy)).norm(dim=-1)
     res = torch.cat([pair.mass_x[run.samples_x][None] * d, pair.mass_y[run.samples_y][None] * d_inv], 1)
     return res.to(torch.float64).mean(1)
 
 
-def _fps(verts: torch.Tensor, num: int, gen: torch.Generator) -> torch.Tensor:
+def farthest_samples(verts: torch.Tensor, num: int, gen: torch.Generator) -> torch.Tensor:
     """Sorted farthest-point samples from a random start drawn from ``gen`` (the original starts at random)."""
     n = verts.shape[0]
     num = min(num, n)
