@@ -51,7 +51,7 @@ def _timed(fn, repeats: int):
 
 def load_pair(golden: Path, pair: str):
     """Spectral shapes, SHOT, shapecorr-convention eigenvalues and the original's outputs of a golden pair."""
-    from shapecorr.matching.deep_shells import make_spectral_shape
+    from shapecorr.geometry.spectral_shape import make_spectral_shape
 
     inputs = np.load(golden / f"inputs_{pair}.npz")
     output = np.load(golden / f"original_output_{pair}.npz")

@@ -42,7 +42,7 @@ def main() -> None:
     sys.path.insert(0, str(REPO))
     from shapecorr.data.datasets import ShapeDataset
     from shapecorr.data.operators import OperatorConfig
-    from shapecorr.eval.protocol import score_map
+    from shapecorr.eval.scoring import score_map
     from shapecorr.matching.baselines import DescriptorNN
 
     cache = args.cache or tempfile.mkdtemp(prefix="shapecorr_rows_")

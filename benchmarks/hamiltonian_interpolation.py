@@ -4,7 +4,7 @@
         [--neuromorph-weights $SHAPECORR_NEUROMORPH_GOLDEN/weights_seed0.npz | --neuromorph-ckpt CKPT] \
         [--faust-pairs 3] [--synthetic-pairs 3] [--n-modes 4] [--iterations 30] [--samples 500]
 
-For every dataset and method the pairs are evaluated with the project's evaluation (``shapecorr.eval.protocol``
+For every dataset and method the pairs are evaluated with the project's evaluation (``shapecorr.eval.pair_pool``
 and ``shapecorr.eval.reports``, the code behind ``evaluate.py``) at the times ``--times`` (default 0, 0.125, ...,
 1, 1.25, 1.5), so the numbers are those ``evaluate.py`` writes:
 
@@ -80,7 +80,8 @@ def evaluate_method(data_overrides: list[str], model_overrides: list[str], out: 
     from shapecorr.cli.matcher_factory import build_matcher
     from shapecorr.data.datasets import PairDataset
     from shapecorr.data.operators import required_request
-    from shapecorr.eval import protocol, reports
+    from shapecorr.eval import pair_pool, protocol, reports
+    from shapecorr.eval.records import load_record
 
     shutil.rmtree(out, ignore_errors=True)  # fresh: evaluate_pairs would skip the pairs of an earlier run
     cfg = _compose([*data_overrides, *model_overrides, f"output_dir={out}", "progress=false"])
@@ -96,8 +97,8 @@ def evaluate_method(data_overrides: list[str], model_overrides: list[str], out: 
     shapes.prepare(num_workers=1, geodesics="heat", progress=False)
     pairs = list(PairDataset(shapes, pairs=dm.pairs("test").pairs, max_pairs=max_pairs).pairs)
     settings = protocol.EvalSettings(geodesics="heat", interp_times=times, write_maps=False)
-    records = protocol.evaluate_pairs(matcher, shapes, pairs, out, settings, workers=0, progress=False)
-    loaded = [protocol.load_record(out, r.source, r.target) for r in records]
+    records = pair_pool.evaluate_pairs(matcher, shapes, pairs, out, settings, workers=0, progress=False)
+    loaded = [load_record(out, r.source, r.target) for r in records]
     metrics = reports.aggregate(records, [e for _, e, _ in loaded], [s for _, _, s in loaded])
     metrics["pairs"] = [[r.source, r.target] for r in records]
     metrics["per_pair_seconds"] = [r.seconds for r in records]

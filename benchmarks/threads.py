@@ -67,7 +67,7 @@ def build(method: str, faust_r: str):
 def time_pairs(matcher, pairs) -> float:
     import torch
 
-    from shapecorr.eval.protocol import run_matcher
+    from shapecorr.eval.matcher_run import run_matcher
 
     start = time.perf_counter()
     with torch.no_grad():

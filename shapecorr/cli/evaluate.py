@@ -17,7 +17,7 @@ Options: ``configs/evaluate.yaml``. Steps of ``task=match`` (the default):
    :mod:`shapecorr.data.operators`) are added to the data's operators.
 2. Fill the shape cache of the split, with the geodesic rows from every target's ground-truth points (rank 0,
    parallel, workers chosen from the estimated memory, progress bar).
-3. Evaluate this rank's shard of the pairs (:mod:`shapecorr.eval.protocol`): per-pair records, maps. With
+3. Evaluate this rank's shard of the pairs (:mod:`shapecorr.eval.pair_pool`): per-pair records, maps. With
    ``multishape=graph`` the model is first queried on the split's candidate pairs (sharded, resumable) and the
    pairs get the maps composed through the shape graph (:class:`~shapecorr.eval.multi_shape.MultiShapeMatcher`,
    docs/evaluation.md §7); ``metrics.json["multi_shape"]`` then reports cycle consistency.
@@ -51,7 +51,7 @@ options plus ``output_dir=OUT``, since the default output folder is new for ever
 
 Resumption: ``OUT/run.json`` records what is evaluated and every setting that changes a number (matcher,
 checkpoint or maps folder, post-processing, interpolator, split, geodesics, conformal clamp, the interpolation
-times of interpolating matchers, and :func:`~shapecorr.eval.protocol.data_settings`: data folder, normalization,
+times of interpolating matchers, and :func:`~shapecorr.eval.fingerprint.data_settings`: data folder, normalization,
 resolved operators, reference points, mesh validation); a re-run with the same ``output_dir`` skips the pairs
 already done and refuses, naming the differing keys, to mix results of a different run. DDP: launch with
 ``torchrun --nproc_per_node=N evaluate.py ...``; every rank evaluates every N-th pair into the same folder
@@ -89,7 +89,10 @@ from shapecorr.data.cache import atomic_open
 from shapecorr.data.datasets import PairDataset, check_pair_names, pair_name
 from shapecorr.data.operators import required_request
 from shapecorr.errors import ConfigError
-from shapecorr.eval import multi_shape, protocol, reports
+from shapecorr.eval import matcher_run, multi_shape, pair_pool, protocol, reports
+from shapecorr.eval.fingerprint import data_settings, fingerprint_changes
+from shapecorr.eval.records import RECORDS_DIR, count_done, load_record
+from shapecorr.eval.sharding import distributed_context, shard_pairs
 from shapecorr.eval.export import INTERP_DIR, map_paths
 from shapecorr.viz.interp_curves import INTERP_CURVES_PNG, write_interp_curves_png
 from shapecorr.viz.pck import write_pck_png
@@ -107,7 +110,7 @@ def _matcher_name(matcher) -> str:
 
 
 def _init_distributed(device: torch.device) -> tuple[int, int]:
-    rank, world = protocol.distributed_context()
+    rank, world = distributed_context()
     if world > 1:
         import torch.distributed as dist
 
@@ -136,7 +139,7 @@ def _check_run_file(out_dir: Path, fingerprint: dict[str, Any], resume: bool) ->
             previous = json.loads(run_file.read_text())
         except (OSError, ValueError):
             previous = None
-        changes = protocol.fingerprint_changes(previous, fingerprint)
+        changes = fingerprint_changes(previous, fingerprint)
         if changes:
             shown = "; ".join(changes[:4]) + (f"; and {len(changes) - 4} more" if len(changes) > 4 else "")
             raise ConfigError(
@@ -146,7 +149,7 @@ def _check_run_file(out_dir: Path, fingerprint: dict[str, Any], resume: bool) ->
             )
         return
     if not resume:
-        for sub in (protocol.RECORDS_DIR, EXAMPLES_DIR, INTERP_DIR):
+        for sub in (RECORDS_DIR, EXAMPLES_DIR, INTERP_DIR):
             shutil.rmtree(out_dir / sub, ignore_errors=True)
     out_dir.mkdir(parents=True, exist_ok=True)
     with atomic_open(run_file) as fh:
@@ -253,11 +256,11 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
         "split": split,
         "geodesics": settings.geodesics,
         "conformal_clamp": settings.conformal_clamp,
-        **protocol.data_settings(shapes),  # every data setting that changes a number (operators, reference points)
+        **data_settings(shapes),  # every data setting that changes a number (operators, reference points)
     }
     if cfg.get("postprocess") is not None:
         fingerprint["postprocess"] = OmegaConf.to_container(cfg.postprocess, resolve=True)
-    if protocol.interpolates(matcher):
+    if matcher_run.interpolates(matcher):
         fingerprint["interp_times"] = None if settings.interp_times is None else list(settings.interp_times)
     if cfg.get("multishape") is not None:
         fingerprint["multishape"] = OmegaConf.to_container(cfg.multishape, resolve=True)
@@ -274,16 +277,16 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
     _barrier()
 
     graph = multishape_of(matcher)
-    mine = protocol.shard_pairs(pairs, rank, world)
+    mine = shard_pairs(pairs, rank, world)
     names = [(shapes.names[i], shapes.names[j]) for i, j in pairs]
-    done = protocol.count_done(out_dir, names)
+    done = count_done(out_dir, names)
     if rank == 0 and done and bool(cfg.resume):
         print(f"resuming: {done} of {len(pairs)} pairs done in {out_dir}", file=sys.stderr)
     try:
         if graph is not None:  # query the split's pairs (sharded, resumable), then build the shape graph
             graph.prepare(shapes, out_dir, len(pairs), rank, world, device=device,
                           progress=bool(cfg.progress) and rank == 0, barrier=_barrier)
-        protocol.evaluate_pairs(
+        pair_pool.evaluate_pairs(
             matcher,
             shapes,
             mine,
@@ -295,14 +298,14 @@ def evaluate(cfg: DictConfig) -> dict[str, Any] | None:
         )
     except KeyboardInterrupt:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # the workers are stopped; a second Ctrl-C must not cut the exit
-        print(interrupted_message(out_dir, protocol.count_done(out_dir, names), len(pairs)), file=sys.stderr)
+        print(interrupted_message(out_dir, count_done(out_dir, names), len(pairs)), file=sys.stderr)
         sys.exit(EXIT_INTERRUPTED)
     _barrier()
     memory = _peak_memory()
     if rank != 0:
         return None
 
-    loaded = [protocol.load_record(out_dir, shapes.names[i], shapes.names[j]) for i, j in pairs]
+    loaded = [load_record(out_dir, shapes.names[i], shapes.names[j]) for i, j in pairs]
     records = [r for r, _, _ in loaded]
     result = reports.aggregate(records, [e for _, e, _ in loaded], [s for _, _, s in loaded])
     result.update(memory)

@@ -15,7 +15,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from shapecorr.cli.model_request import model_request
 from shapecorr.errors import ConfigError
-from shapecorr.eval import multi_shape, protocol
+from shapecorr.eval import matcher_run, multi_shape
 from shapecorr.matching.baselines import LinearBlend, PrecomputedMaps
 from shapecorr.matching.result import Matcher
 from shapecorr.models.recipe import build_model, load_model, untrained_warning
@@ -111,7 +111,7 @@ def with_interpolator(cfg: DictConfig, matcher):
         wrapped = hydra.utils.instantiate(node, _convert_="object", **kwargs)
     except hydra.errors.InstantiationException as err:
         raise ConfigError(f"cannot build the interpolator: {err}") from None
-    if not (isinstance(wrapped, Matcher) and protocol.interpolates(wrapped)):
+    if not (isinstance(wrapped, Matcher) and matcher_run.interpolates(wrapped)):
         raise ConfigError(f"interpolator {node._target_} has no interpolate(x, y, times) method")
     return wrapped
 
@@ -174,4 +174,4 @@ def interp_times_option(cfg: DictConfig) -> tuple[float, ...] | None:
     if not OmegaConf.is_list(value):
         raise ConfigError("interp_times must be a list of times (e.g. interp_times=[0,0.5,1,1.5]) or null, "
                           f"got {value!r}")
-    return protocol.check_interp_times(OmegaConf.to_container(value, resolve=True))
+    return matcher_run.check_interp_times(OmegaConf.to_container(value, resolve=True))

@@ -43,7 +43,7 @@ from shapecorr.data.io import write_map, write_mesh
 from shapecorr.data.operators import OperatorConfig, required_request
 from shapecorr.data.shape import Normalization
 from shapecorr.errors import ConfigError, MeshReadError
-from shapecorr.eval import protocol
+from shapecorr.eval import matcher_run
 from shapecorr.eval.export import TIMES_FILE, write_frames
 
 #: Folder of the pose-transfer outputs under ``output_dir``.
@@ -56,7 +56,7 @@ MAP_FILE = "map.txt"
 
 def require_interpolating(matcher, what: str | None = None) -> None:
     """Raise ConfigError unless ``matcher`` has an ``interpolate`` method (``what`` names it in the message)."""
-    if not protocol.interpolates(matcher):
+    if not matcher_run.interpolates(matcher):
         raise ConfigError(
             "task=pose_transfer needs an interpolating matcher (with an interpolate(x, y, times) method); "
             f"{what or type(matcher).__name__} has none (e.g. model=neuromorph ckpt_path=CKPT, or model=linear_blend "
@@ -130,13 +130,13 @@ def transfer_pose(
     require_interpolating(matcher)
     start = time.perf_counter()
     with torch.no_grad():
-        run = protocol.run_matcher(matcher, x.to(device), y.to(device), interp_times)
+        run = matcher_run.run_matcher(matcher, x.to(device), y.to(device), interp_times)
     seconds = time.perf_counter() - start
     result = run.result.cpu().validate(x.shape.n_verts, y.shape.n_verts, pair_name(x.name, y.name))
-    run = protocol.MatcherRun(result, run.export, run.export_times)
+    run = matcher_run.MatcherRun(result, run.export, run.export_times)
     if result.deformation is None:
         raise ConfigError(f"{type(matcher).__name__} returned no deformation for {pair_name(x.name, y.name)}")
-    unit = protocol.unit_time_index(result.times)
+    unit = matcher_run.unit_time_index(result.times)
     if unit is None:  # run_matcher adds t = 1 for interpolating matchers; guard against a matcher ignoring it
         raise ConfigError(f"{type(matcher).__name__} returned no frame at t = 1 (times {result.times.tolist()})")
     folder = Path(out_dir) / POSE_TRANSFER_DIR / pair_name(x.name, y.name)

@@ -2,7 +2,7 @@
 
 The readers in :mod:`shapecorr.data.io` give each shape its ``.vts`` reference points; this module pairs them
 up. It lives on the data side so that both the matchers (e.g. the ``identity_gt`` baseline in
-:mod:`shapecorr.matching.baselines`) and the evaluation protocol (:mod:`shapecorr.eval.protocol`) use it without
+:mod:`shapecorr.matching.baselines`) and the evaluation protocol (:mod:`shapecorr.eval.scoring`) use it without
 the matching layer importing the evaluation layer.
 """
 

@@ -1,1 +1,1 @@
-"""Evaluation: metrics, the per-pair protocol, reports, map and sequence export."""
+"""Evaluation: metrics, scoring, the per-pair protocol, records, worker pool, sharding, reports, export."""

@@ -30,7 +30,8 @@ import numpy as np
 
 from shapecorr.data.cache import atomic_open
 from shapecorr.errors import ShapeCorrError
-from shapecorr.eval import protocol, reports
+from shapecorr.eval import reports
+from shapecorr.eval.records import load_record
 
 METRICS_FILE = "metrics.json"
 PER_PAIR_FILE = "per_pair.csv"
@@ -286,7 +287,7 @@ def _row_values(run: Run, pairs: Sequence[tuple[str, str]]) -> dict[str, Any]:
     """Metrics of ``run`` on ``pairs``: recomputed from the per-pair records when the pair set is smaller."""
     m = run.metrics
     if run.has_records and len(pairs) != len(run.pairs):
-        loaded = [protocol.load_record(run.path, x, y) for x, y in pairs]
+        loaded = [load_record(run.path, x, y) for x, y in pairs]
         m = {**m, **reports.aggregate([r for r, _, _ in loaded], [e for _, e, _ in loaded],
                                       [s for _, _, s in loaded])}
     values: dict[str, Any] = {c.key: m.get(c.key) for c in COLUMNS}

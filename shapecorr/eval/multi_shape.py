@@ -44,7 +44,9 @@ from shapecorr.data.cache import atomic_open
 from shapecorr.data.datasets import pair_name
 from shapecorr.errors import ConfigError
 from shapecorr.eval import metrics
-from shapecorr.eval.protocol import PRECOMPUTED_SECONDS_KEY, score_map, shard_pairs
+from shapecorr.eval.protocol import PRECOMPUTED_SECONDS_KEY
+from shapecorr.eval.scoring import score_map
+from shapecorr.eval.sharding import shard_pairs
 from shapecorr.matching.deep_shells import DeepShellsConfig
 from shapecorr.matching.gmsm_query import alignment_cost_of_maps
 from shapecorr.matching.result import MatchResult

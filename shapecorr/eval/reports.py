@@ -46,7 +46,8 @@ import numpy as np
 from shapecorr.data.cache import atomic_open
 from shapecorr.errors import CorrespondenceError
 from shapecorr.eval import metrics
-from shapecorr.eval.protocol import TIME_ATOL, PairRecord
+from shapecorr.eval.matcher_run import TIME_ATOL
+from shapecorr.eval.records import PairRecord
 
 #: Per-pair curves over the frames (lists), kept in the per-pair JSON records, not in per_pair.csv.
 CURVE_ATTRIBUTES = ("curve_times", "curve_conformal_distortion", "curve_volume_score")
@@ -100,7 +101,7 @@ def interpolation_curves(records: Sequence[PairRecord]) -> dict[str, list] | Non
     Returns
     -------
     dict with ``times (T,)`` (every frame time of any pair, sorted; times closer than
-    :data:`~shapecorr.eval.protocol.TIME_ATOL` merged), ``conformal_distortion (T,)`` and ``volume_score (T,)``
+    :data:`~shapecorr.eval.matcher_run.TIME_ATOL` merged), ``conformal_distortion (T,)`` and ``volume_score (T,)``
     (means over the pairs having a value at that time; None where no pair has one) and ``n_pairs (T,)``, or
     None when no record has curves.
     """

@@ -65,10 +65,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from shapecorr.errors import ConfigError, InvalidMeshError, NumericalError
+from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.geometry.normals import vertex_normals
 from shapecorr.geometry.sampling import farthest_point_sampling
-from shapecorr.geometry.shells import sigmoid_shell_weights, smooth_shell, spectral_coefficients
+from shapecorr.geometry.shells import sigmoid_shell_weights, smooth_shell
+from shapecorr.geometry.spectral_shape import SpectralShape
 from shapecorr.matching.least_squares import DEFAULT_RIDGE, normal_equations, solve_normal_equations
 from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
 from shapecorr.matching.sinkhorn import (
@@ -213,84 +214,6 @@ class DeepShellsConfig:
     def refine_k_array(self) -> tuple[int, ...]:
         """Shell sizes of the test-time refinement."""
         return log_spaced_k(self.refine_k_min, self.refine_k_max, self.refine_levels)
-
-
-@dataclass(frozen=True, eq=False)
-class SpectralShape:
-    """Full-resolution per-shape quantities the shell methods need.
-
-    Attributes
-    ----------
-    verts : (n, 3) float
-    faces : (f, 3) int64
-    evecs : (n, K) float
-        Mass-orthonormal eigenfunctions, ascending eigenvalues.
-    mass : (n,) float
-        Lumped vertex areas.
-    coeffs : (K, 3) float
-        Spectral coefficients of the coordinates, ``evecs^T diag(mass) verts``.
-    name : str
-    """
-
-    verts: torch.Tensor
-    faces: torch.Tensor
-    evecs: torch.Tensor
-    mass: torch.Tensor
-    coeffs: torch.Tensor
-    name: str = "shape"
-
-    @property
-    def n_verts(self) -> int:
-        """Number of vertices."""
-        return int(self.verts.shape[0])
-
-    @property
-    def n_eigs(self) -> int:
-        """Number of eigenfunctions."""
-        return int(self.evecs.shape[1])
-
-    def to(self, device: torch.device | str) -> "SpectralShape":
-        """Copy with all tensors on ``device``."""
-        return replace(self, verts=self.verts.to(device), faces=self.faces.to(device), evecs=self.evecs.to(device),
-                       mass=self.mass.to(device), coeffs=self.coeffs.to(device))
-
-
-def make_spectral_shape(
-    verts: torch.Tensor, faces: torch.Tensor, evecs: torch.Tensor, mass: torch.Tensor, name: str = "shape"
-) -> SpectralShape:
-    """Validate the operators of a shape and precompute its coordinate coefficients.
-
-    Parameters
-    ----------
-    verts : (n, 3) float
-    faces : (f, 3) int
-    evecs : (n, K) float
-    mass : (n,) float
-    name : str
-        Used in error messages.
-
-    Returns
-    -------
-    SpectralShape
-    """
-    verts = torch.as_tensor(verts)
-    faces = torch.as_tensor(faces).to(torch.int64)
-    evecs = torch.as_tensor(evecs).to(verts.dtype)
-    mass = torch.as_tensor(mass).to(verts.dtype)
-    n = verts.shape[0]
-    if verts.dim() != 2 or verts.shape[1] != 3 or faces.dim() != 2 or faces.shape[1] != 3:
-        raise InvalidMeshError(f"{name}: need verts (n, 3) and faces (f, 3), got {tuple(verts.shape)}, "
-                               f"{tuple(faces.shape)}")
-    if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= n):
-        raise InvalidMeshError(f"{name}: face indices out of range for {n} vertices")
-    if evecs.dim() != 2 or evecs.shape[0] != n or mass.shape != (n,):
-        raise InvalidMeshError(f"{name}: operators do not match the {n} vertices: evecs {tuple(evecs.shape)}, "
-                               f"mass {tuple(mass.shape)}")
-    for label, t in (("vertices", verts), ("eigenvectors", evecs), ("mass", mass)):
-        if not torch.isfinite(t).all():
-            raise InvalidMeshError(f"{name}: the {label} contain NaN or Inf")
-    coeffs = spectral_coefficients(evecs, mass, verts)
-    return SpectralShape(verts=verts, faces=faces, evecs=evecs, mass=mass, coeffs=coeffs, name=name)
 
 
 @dataclass(frozen=True, eq=False)

@@ -18,10 +18,10 @@ from dataclasses import dataclass, replace
 import torch
 
 from shapecorr.errors import ConfigError, NumericalError
+from shapecorr.geometry.spectral_shape import SpectralShape
 from shapecorr.matching.deep_shells import (
     DeepShellsConfig,
     DeepShellsMatch,
-    SpectralShape,
     _check_eigs,
     _shell,
     deformation_from_pairs,

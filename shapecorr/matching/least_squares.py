@@ -59,13 +59,16 @@ def normal_equations(
 def solve_normal_equations(
     gram: torch.Tensor, rhs: torch.Tensor, ridge: float = DEFAULT_RIDGE, what: str = "least-squares"
 ) -> torch.Tensor:
-    """Solve ``(G + ridge * mean(diag G) * I) X = rhs`` in float64 by a Cholesky factorization.
+    """Solve ``(G + ridge * mean(diag G) * I) X = rhs`` in float64 by a Cholesky factorization, batched.
+
+    Leading dimensions are a batch of independent systems, each with its own ridge. An all-zero Gram matrix
+    (no data in that system) gets the absolute ridge instead, so that its solution is 0 for ``ridge > 0``.
 
     Parameters
     ----------
-    gram : (k, k) float
-        Symmetric positive semi-definite Gram matrix.
-    rhs : (k, c) float
+    gram : (..., k, k) float
+        Symmetric positive semi-definite Gram matrices.
+    rhs : (..., k, c) float
     ridge : float
         Relative ridge (>= 0), see :data:`DEFAULT_RIDGE`.
     what : str
@@ -73,12 +76,12 @@ def solve_normal_equations(
 
     Returns
     -------
-    (k, c) float64
+    (..., k, c) float64
 
     Raises
     ------
     NumericalError
-        If the inputs contain NaN/Inf, the regularized matrix is not positive definite (e.g. an all-zero
+        If the inputs contain NaN/Inf, a regularized matrix is not positive definite (e.g. an all-zero
         design matrix with ``ridge = 0``), or the solution is not finite.
     """
     if ridge < 0:
@@ -87,15 +90,16 @@ def solve_normal_equations(
     z = rhs.to(torch.float64)
     if not (torch.isfinite(g).all() and torch.isfinite(z).all()):
         raise NumericalError(f"{what}: the normal equations contain NaN or Inf (check the input correspondences)")
-    k = g.shape[0]
-    scale = torch.diagonal(g).mean()
+    k = g.shape[-1]
+    scale = torch.diagonal(g, dim1=-2, dim2=-1).mean(-1)
+    scale = torch.where(scale > 0, scale, torch.ones_like(scale))
     if ridge > 0:
-        g = g + (ridge * scale) * torch.eye(k, dtype=g.dtype, device=g.device)
+        g = g + (ridge * scale)[..., None, None] * torch.eye(k, dtype=g.dtype, device=g.device)
     chol, info = torch.linalg.cholesky_ex(g)
-    if int(info) != 0:
+    if bool((info != 0).any()):
         raise NumericalError(
-            f"{what}: the {k}x{k} Gram matrix is not positive definite (mean diagonal {float(scale):.3g}, "
-            f"ridge {ridge}); the correspondences do not determine the {k} unknowns"
+            f"{what}: a {k}x{k} Gram matrix is not positive definite (ridge {ridge}); the correspondences do "
+            f"not determine the {k} unknowns"
         )
     sol = torch.cholesky_solve(z, chol)
     if not torch.isfinite(sol).all():

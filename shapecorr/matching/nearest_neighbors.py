@@ -1,7 +1,9 @@
-"""Exact nearest neighbours between two embeddings, in both directions.
+"""Exact nearest neighbours between two embeddings: both directions of one pair, or one direction of a batch.
 
 Used by the axiomatic shell refinements (Deep Shells test time, G-MSM queries, Smooth Shells): for every
-point of X its nearest point of Y in the product-space embedding and vice versa.
+point of X its nearest point of Y in the product-space embedding and vice versa
+(:func:`bidirectional_nearest_neighbors`). Smooth Shells' random search and rigid surrogate runs solve many
+small independent problems at once (:func:`batched_nearest_neighbors`).
 
 Backends:
 
@@ -33,6 +35,9 @@ from shapecorr.errors import ConfigError, NumericalError
 DEFAULT_BLOCK_SIZE = 2048
 #: Threads used by the kd-tree queries (-1: all cores).
 DEFAULT_WORKERS = -1
+
+#: Distances per block of the batched brute-force search (memory ~ rows x batch x points).
+BATCH_BLOCK_ENTRIES = 1 << 24
 
 #: Search backends of :func:`bidirectional_nearest_neighbors` (module docstring).
 NN_BACKENDS = ("auto", "kdtree", "brute")
@@ -136,3 +141,64 @@ def bidirectional_nearest_neighbors(
     if backend == "kdtree":
         return _kdtree(emb_x, emb_y, workers)
     return _brute(emb_x, emb_y, int(block_size), exact)
+
+
+def batched_nearest_neighbors(queries: torch.Tensor, points: torch.Tensor, backend: str = "auto") -> torch.Tensor:
+    """Exact Euclidean nearest neighbours of a batch of independent problems (one direction).
+
+    A batch dimension of 1 on either side is shared by every batch element.
+
+    Backends: ``"kdtree"``: scipy k-d trees in float64 (exact), faster on the CPU for low-dimensional embeddings
+    (measured: brute force ~20x slower for 1000 x 5000 points in 26 dimensions, batched float32 brute force
+    ~1.7x slower for 1000 x 1000); a shared point set is one tree for the whole batch, and the batch elements
+    are spread over torch's intra-op thread count (scipy releases the GIL). ``"brute"``: one distance block per
+    chunk of queries for the whole batch, in the input dtype, on the tensors' device. ``"auto"``: ``"kdtree"``
+    on the CPU, ``"brute"`` elsewhere.
+
+    Parameters
+    ----------
+    queries : (B or 1, q, d) float
+    points : (B or 1, p, d) float
+    backend : {"auto", "kdtree", "brute"}
+
+    Returns
+    -------
+    (B, q) int64
+        For each query, the index of its nearest point (on the device of ``queries``).
+    """
+    if backend not in NN_BACKENDS:
+        raise ConfigError(f"nearest-neighbour backend must be one of {NN_BACKENDS}, got {backend!r}")
+    if queries.dim() != 3 or points.dim() != 3 or queries.shape[2] != points.shape[2]:
+        raise ConfigError(f"batched nearest neighbours: need (B, q, d) and (B, p, d), got {tuple(queries.shape)}, "
+                          f"{tuple(points.shape)}")
+    b = max(queries.shape[0], points.shape[0])
+    q, p = queries.shape[1], points.shape[1]
+    if backend == "auto":
+        backend = "kdtree" if queries.device.type == "cpu" else "brute"
+    if backend == "kdtree":
+        pts = points.detach().to(torch.float64).cpu().numpy()
+        qrs = queries.detach().to(torch.float64).cpu().numpy()
+        shared = cKDTree(pts[0]) if pts.shape[0] == 1 else None
+        out = np.empty((b, q), dtype=np.int64)
+
+        def one(i: int) -> None:
+            tree = shared if shared is not None else cKDTree(pts[i])
+            out[i] = tree.query(qrs[0] if qrs.shape[0] == 1 else qrs[i], k=1)[1]
+
+        threads = min(torch.get_num_threads(), b)
+        if threads < 2:
+            for i in range(b):
+                one(i)
+        else:
+            with ThreadPoolExecutor(max_workers=threads) as pool:
+                list(pool.map(one, range(b)))
+        return torch.from_numpy(out).to(queries.device)
+    queries, points = queries.expand(b, -1, -1), points.expand(b, -1, -1)
+    chunk = max(1, BATCH_BLOCK_ENTRIES // max(1, b * p))
+    out = torch.empty(b, q, dtype=torch.int64, device=queries.device)
+    pp = points.square().sum(-1)[:, None, :]
+    for start in range(0, q, chunk):
+        qb = queries[:, start:start + chunk]
+        d = torch.baddbmm(pp, qb, points.transpose(1, 2), alpha=-2.0)
+        out[:, start:start + chunk] = d.argmin(-1)
+    return out

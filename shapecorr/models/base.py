@@ -4,7 +4,7 @@ A concrete model implements ``training_step`` (features -> matching -> loss -> `
 (the matcher protocol of :mod:`shapecorr.matching.result`). This base class adds what every model needs:
 
 - validation and test steps that run ``match`` on the pair, score the map with the evaluation protocol
-  (:func:`shapecorr.eval.protocol.score_map`: geodesic error / sqrt(area) against the ground truth) and log
+  (:func:`shapecorr.eval.scoring.score_map`: geodesic error / sqrt(area) against the ground truth) and log
   ``val/geodesic_error`` (``test/geodesic_error``), the conformal distortion and the time per pair, and while
   fitting ``val/pairs_seen`` (training pairs seen so far: the x-axis of learning curves);
 - at the end of a validation epoch a PCK-curve figure and the colored correspondence of the first validation
@@ -36,7 +36,7 @@ import torch
 
 from shapecorr.errors import ConfigError
 from shapecorr.eval import metrics
-from shapecorr.eval.protocol import score_map
+from shapecorr.eval.scoring import score_map
 from shapecorr.matching.result import MatchResult
 from shapecorr.viz.tensorboard import log_correspondence_meshes, log_pck_figure
 

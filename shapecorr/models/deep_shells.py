@@ -49,11 +49,11 @@ from torch import nn
 
 from shapecorr.data.operators import merge_requests
 from shapecorr.errors import ConfigError, NumericalError
+from shapecorr.geometry.spectral_shape import make_spectral_shape
 from shapecorr.matching.deep_shells import (
     DeepShellsConfig,
     deep_shells_layer,
     deep_shells_query,
-    make_spectral_shape,
     random_samples,
     shell_size,
 )
@@ -246,7 +246,7 @@ class DeepShells(CorrespondenceModule):
 
     @staticmethod
     def spectral_shape(sample):
-        """:class:`~shapecorr.matching.deep_shells.SpectralShape` of a ShapeSample (coordinates' coefficients)."""
+        """:class:`~shapecorr.geometry.spectral_shape.SpectralShape` of a ShapeSample (coordinates' coefficients)."""
         return make_spectral_shape(sample.verts, sample.faces, sample.evecs, sample.mass, name=sample.name)
 
     def sample_generator(self, batch_idx: int) -> torch.Generator:

@@ -50,7 +50,7 @@ from shapecorr.eval.multi_shape import (
     query_pairs,
     save_graph,
 )
-from shapecorr.eval.protocol import shard_pairs
+from shapecorr.eval.sharding import shard_pairs
 from shapecorr.matching.deep_shells import deep_shells_layer, random_samples, shell_size
 from shapecorr.matching.gmsm_query import full_resolution_shells, one_level_query, two_sided_alignment_cost
 from shapecorr.matching.result import MatchResult

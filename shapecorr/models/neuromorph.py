@@ -82,12 +82,8 @@ from shapecorr.data.augmentation import (
 )
 from shapecorr.data.cache import ShapeCache, content_hash, default_cache_root
 from shapecorr.errors import ConfigError, NumericalError
-from shapecorr.eval.protocol import (
-    UNIT_TIME,
-    check_interp_times,
-    score_deformation,
-    unit_time_index,
-)
+from shapecorr.eval.matcher_run import UNIT_TIME, check_interp_times, unit_time_index
+from shapecorr.eval.scoring import score_deformation
 from shapecorr.geometry.mesh_graph import undirected_edges
 from shapecorr.losses.weighted import WeightedLoss
 from shapecorr.matching.result import MatchResult
@@ -509,8 +505,8 @@ class NeuroMorph(CorrespondenceModule):
     def _score_interpolation(self, batch, result: MatchResult, split: str) -> None:
         """Log Chamfer distance of X(1) to y and conformal distortion of the frames with 0 <= t <= 1.
 
-        Times are matched with the evaluation protocol's tolerance (:func:`~shapecorr.eval.protocol.unit_time_index`,
-        :func:`~shapecorr.eval.protocol.score_deformation`); without a frame at t = 1 it is computed here.
+        Times are matched with the evaluation protocol's tolerance (:func:`~shapecorr.eval.matcher_run.unit_time_index`,
+        :func:`~shapecorr.eval.scoring.score_deformation`); without a frame at t = 1 it is computed here.
         """
         frames, times = result.deformation, result.times.detach().cpu()
         if unit_time_index(times) is None:

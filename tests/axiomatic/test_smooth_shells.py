@@ -16,7 +16,6 @@ from scipy.spatial import cKDTree
 from shapecorr.axiomatic.smooth_shells import (
     SmoothShells,
     SmoothShellsConfig,
-    _nearest,
     basis_features,
     k_schedule,
     random_search_init,
@@ -249,25 +248,6 @@ def test_matcher_gives_maps_and_frames(base, rigid_pair):
     assert torch.equal(out.p2p, rigid_pair["result"].map_x_to_y)
     with pytest.raises(ConfigError):
         SmoothShells(k_maxx=3)
-
-
-def test_batched_nearest_neighbours_backends_agree():
-    # the brute-force branch is what runs on the GPU; both must be exact, with or without a shared side
-    g = torch.Generator().manual_seed(0)
-    queries, points = torch.randn(3, 50, 7, generator=g), torch.randn(3, 80, 7, generator=g)
-    naive = torch.cdist(queries.double(), points.double()).argmin(-1)
-    shared_points = torch.cdist(queries.double(), points[:1].double()).argmin(-1)
-    shared_queries = torch.cdist(queries[:1].double(), points.double()).argmin(-1)
-    threads = torch.get_num_threads()
-    try:
-        for n_threads in (1, 3):
-            torch.set_num_threads(n_threads)  # the k-d tree branch spreads the batch over the threads
-            for backend in ("kdtree", "brute"):
-                assert torch.equal(_nearest(queries, points, backend=backend), naive)
-                assert torch.equal(_nearest(queries, points[:1], backend=backend), shared_points)
-                assert torch.equal(_nearest(queries[:1], points, backend=backend), shared_queries)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def test_rigid_keep_input_scores_the_input_orientation(base):

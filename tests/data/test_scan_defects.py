@@ -16,7 +16,7 @@ from hydra import compose, initialize_config_dir
 
 from shapecorr.cli import evaluate as evaluate_cli
 from shapecorr.data.io import write_mesh, write_vts
-from shapecorr.eval import protocol
+from shapecorr.eval import pair_pool
 
 REPO = Path(__file__).resolve().parents[2]
 N_REF = 40
@@ -218,13 +218,13 @@ def test_non_utf8_file_name_end_to_end(tmp_path):
 
 def test_ctrl_c_prints_one_line_with_the_resume_command(tmp_path, capsys, monkeypatch):
     make_folder(tmp_path / "data")
-    real = protocol.evaluate_pairs
+    real = pair_pool.evaluate_pairs
 
     def interrupted(matcher, shapes, pairs, out_dir, *args, **kwargs):
         real(matcher, shapes, pairs[:2], out_dir, *args, **kwargs)  # two pairs done, then Ctrl-C
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(protocol, "evaluate_pairs", interrupted)
+    monkeypatch.setattr(pair_pool, "evaluate_pairs", interrupted)
     cfg = _cfg(tmp_path / "data", tmp_path / "cache", tmp_path / "out")
     with pytest.raises(SystemExit) as exc:
         evaluate_cli.evaluate(cfg)
@@ -232,7 +232,7 @@ def test_ctrl_c_prints_one_line_with_the_resume_command(tmp_path, capsys, monkey
     lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert lines[-1].startswith("interrupted: 2 of 6 pairs done; resume with: python evaluate.py")
     assert f"output_dir={tmp_path / 'out'}" in lines[-1] and "Traceback" not in "\n".join(lines)
-    monkeypatch.setattr(protocol, "evaluate_pairs", real)
+    monkeypatch.setattr(pair_pool, "evaluate_pairs", real)
     evaluate_cli.evaluate(cfg)
     assert "resuming: 2 of 6 pairs done" in capsys.readouterr().err
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from shapecorr.errors import ConfigError, CorrespondenceError, NumericalError
-from shapecorr.eval import protocol
+from shapecorr.eval import scoring
 from shapecorr.matching.baselines import (
     DescriptorNN,
     IdentityGT,
@@ -50,7 +50,7 @@ def test_identity_gt_has_zero_error(spheres):
     for i, j in [(0, 1), (2, 0)]:
         x, y = spheres[i], spheres[j]
         p2p = matcher.match(x, y).validate(x.shape.n_verts, y.shape.n_verts).p2p
-        scores = protocol.score_map(p2p, x, y, spheres.geodesics(j))
+        scores = scoring.score_map(p2p, x, y, spheres.geodesics(j))
         assert np.all(scores["errors"] == 0.0)
         # reference vertices go exactly to their ground truth; the others to a nearby reference's image
         assert torch.equal(p2p[x.corres], y.corres)

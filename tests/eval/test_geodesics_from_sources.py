@@ -16,7 +16,7 @@ from shapecorr.geometry.memory import prepare_bytes, workers_for_memory
 from shapecorr.data.operators import geodesics_from_cached
 from shapecorr.data.shape import make_shape
 from shapecorr.errors import ConfigError
-from shapecorr.eval import metrics, protocol
+from shapecorr.eval import metrics, scoring
 from shapecorr.geometry.geodesics import (
     SourceDistances,
     distances_from_sources,
@@ -117,15 +117,15 @@ def test_score_map_excludes_island_points_and_names_the_file(tmp_path):
     p2p[n_body + 1] = 0  # not scored: on the island of x
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = protocol.score_map(p2p, x, y, dist)
+        out = scoring.score_map(p2p, x, y, dist)
     assert out["n_excluded"] == 2 and out["errors"].shape == (3,)
     np.testing.assert_allclose(out["errors"], 0.0, atol=1e-7)
-    messages = [str(w.message) for w in caught if issubclass(w.category, protocol.IslandWarning)]
+    messages = [str(w.message) for w in caught if issubclass(w.category, scoring.IslandWarning)]
     assert len(messages) == 2 and str(path) in messages[1] and "n_excluded_points" in messages[1]
     with warnings.catch_warnings(record=True) as caught:  # once per file
         warnings.simplefilter("always")
-        protocol.score_map(p2p, x, y, dist)
-    assert not [w for w in caught if issubclass(w.category, protocol.IslandWarning)]
+        scoring.score_map(p2p, x, y, dist)
+    assert not [w for w in caught if issubclass(w.category, scoring.IslandWarning)]
 
 
 def test_prediction_on_an_island_of_the_target_is_scored_on_the_body():
@@ -134,7 +134,7 @@ def test_prediction_on_an_island_of_the_target_is_scored_on_the_body():
     x, y = sample(v, f, "x", refs), sample(v, f, "y", refs)
     p2p = np.arange(len(v))
     p2p[10] = n_body + 1  # x's point 10 lands on y's island
-    out = protocol.score_map(p2p, x, y, distances_from_sources(v, f, refs))
+    out = scoring.score_map(p2p, x, y, distances_from_sources(v, f, refs))
     assert np.isfinite(out["errors"]).all() and out["errors"][1] > 0 and out["n_excluded"] == 0
 
 

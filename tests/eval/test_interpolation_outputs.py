@@ -12,7 +12,7 @@ import torch
 from shapecorr.data.io import read_mesh
 from shapecorr.data.shape import make_shape
 from shapecorr.errors import ConfigError, CorrespondenceError, NumericalError
-from shapecorr.eval import export, metrics, protocol, reports
+from shapecorr.eval import export, matcher_run, metrics, pair_pool, protocol, records, reports, scoring
 from shapecorr.matching.baselines import DescriptorNN, LinearBlend
 from shapecorr.matching.result import MatchResult
 
@@ -110,25 +110,25 @@ def test_frames_are_written_in_input_units(tmp_path):
 
 # --------------------------------------------------------------------------------------------- times
 def test_interp_times_validation_and_unit_time():
-    assert protocol.check_interp_times([0, 0.5, 1.5]) == (0.0, 0.5, 1.5)
+    assert matcher_run.check_interp_times([0, 0.5, 1.5]) == (0.0, 0.5, 1.5)
     for bad in ([], [0.0, 0.0], [1.0, 0.5], [0.0, float("nan")], ["a"], 3.0):
         with pytest.raises(ConfigError, match="interp_times"):
-            protocol.check_interp_times(bad)
+            matcher_run.check_interp_times(bad)
     with pytest.raises(ConfigError, match="interp_times"):
         protocol.EvalSettings(interp_times=(1.0, 0.0))
-    all_times, requested = protocol.with_unit_time([0.0, 0.5, 1.5])
+    all_times, requested = matcher_run.with_unit_time([0.0, 0.5, 1.5])
     assert all_times == (0.0, 0.5, 1.0, 1.5) and requested.tolist() == [0, 1, 3]
-    all_times, requested = protocol.with_unit_time([0.25, 1.0])
+    all_times, requested = matcher_run.with_unit_time([0.25, 1.0])
     assert all_times == (0.25, 1.0) and requested.tolist() == [0, 1]
-    assert protocol.unit_time_index(np.float32([0.0, 1.0])) == 1
-    assert protocol.unit_time_index([0.0, 0.99]) is None
+    assert matcher_run.unit_time_index(np.float32([0.0, 1.0])) == 1
+    assert matcher_run.unit_time_index([0.0, 0.99]) is None
 
 
 # ---------------------------------------------------------------------------------------- LinearBlend
 def test_linear_blend_frames(spheres):
     x, y = spheres[0], spheres[1]
     blend = LinearBlend(FixedMap(spheres))
-    assert protocol.interpolates(blend) and not protocol.interpolates(FixedMap(spheres))
+    assert matcher_run.interpolates(blend) and not matcher_run.interpolates(FixedMap(spheres))
     p2p = torch.as_tensor(spheres.true_map(0, 1))
     result = blend.interpolate(x, y, torch.tensor([0.0, 0.5, 1.0, 2.0]))
     assert torch.equal(result.p2p, p2p) and result.deformation.shape == (4, x.shape.n_verts, 3)
@@ -149,16 +149,16 @@ def test_linear_blend_frames(spheres):
 def test_run_matcher_adds_unit_time_and_exports_only_requested(spheres):
     x, y = spheres[0], spheres[1]
     inner = FixedMap(spheres)
-    run = protocol.run_matcher(LinearBlend(inner), x, y, (0.0, 0.5, 1.5))
+    run = matcher_run.run_matcher(LinearBlend(inner), x, y, (0.0, 0.5, 1.5))
     assert run.result.times.tolist() == [0.0, 0.5, 1.0, 1.5]
     frames, times = run.sequence()
     assert times.tolist() == [0.0, 0.5, 1.5] and frames.shape[0] == 3
     torch.testing.assert_close(frames[2], run.result.deformation[3])
     # a non-interpolating matcher ignores interp_times: match() only, no frames
-    plain = protocol.run_matcher(inner, x, y, (0.0, 0.5, 1.5))
+    plain = matcher_run.run_matcher(inner, x, y, (0.0, 0.5, 1.5))
     assert plain.result.deformation is None and plain.sequence() is None
     with pytest.raises(CorrespondenceError, match="was asked for frames at"):
-        protocol.run_matcher(WrongTimes(), x, y, (0.0, 1.0))
+        matcher_run.run_matcher(WrongTimes(), x, y, (0.0, 1.0))
 
 
 def test_linear_blend_chamfer_and_distortion_by_hand(spheres, tmp_path):
@@ -168,7 +168,7 @@ def test_linear_blend_chamfer_and_distortion_by_hand(spheres, tmp_path):
     p2p = rng.integers(0, n, n)
     blend = LinearBlend(FixedMap(spheres, {(0, 1): p2p}))
     settings = protocol.EvalSettings(interp_times=(0.0, 0.5, 1.5))
-    record = protocol.evaluate_pairs(blend, spheres, [(0, 1)], tmp_path, settings, progress=False)[0]
+    record = pair_pool.evaluate_pairs(blend, spheres, [(0, 1)], tmp_path, settings, progress=False)[0]
     x, y = spheres[0], spheres[1]
     vy, vx, fx = y.verts.numpy().astype(np.float64), x.verts.numpy().astype(np.float64), x.faces.numpy()
     sqrt_area = np.sqrt(metrics.surface_area(vy, y.faces.numpy()))
@@ -193,26 +193,26 @@ def test_score_deformation_needs_a_unit_frame(spheres):
     x, y = spheres[0], spheres[1]
     frames = torch.stack([x.verts, x.verts])
     with pytest.raises(CorrespondenceError, match="no frame at t = 1"):
-        protocol.score_deformation(frames, x, y, times=[0.0, 0.5])
+        scoring.score_deformation(frames, x, y, times=[0.0, 0.5])
     with pytest.raises(CorrespondenceError, match="2 frames but 3 times"):
-        protocol.score_deformation(frames, x, y, times=[0.0, 0.5, 1.0])
+        scoring.score_deformation(frames, x, y, times=[0.0, 0.5, 1.0])
     # without times the last frame is compared with y (frames from match())
-    assert protocol.score_deformation(frames, x, y)["chamfer_one_sided"] > 0
+    assert scoring.score_deformation(frames, x, y)["chamfer_one_sided"] > 0
 
 
 def test_write_interp_false_and_non_interpolating_records(spheres, tmp_path):
     settings = protocol.EvalSettings(interp_times=(0.0, 1.0), write_interp=False)
-    record = protocol.evaluate_pairs(LinearBlend(FixedMap(spheres)), spheres, [(0, 1)], tmp_path / "a", settings,
+    record = pair_pool.evaluate_pairs(LinearBlend(FixedMap(spheres)), spheres, [(0, 1)], tmp_path / "a", settings,
                                      progress=False)[0]
     assert record.chamfer == pytest.approx(0.0, abs=1e-6) and not (tmp_path / "a" / "interp").exists()
-    plain = protocol.evaluate_pairs(FixedMap(spheres), spheres, [(0, 1)], tmp_path / "b", settings, progress=False)[0]
+    plain = pair_pool.evaluate_pairs(FixedMap(spheres), spheres, [(0, 1)], tmp_path / "b", settings, progress=False)[0]
     assert plain.chamfer is None and plain.deformation_conformal_distortion is None
 
 
 # ---------------------------------------------------------------------------------------------- reports
 def test_reports_interpolation_keys_and_summary():
     def record(chamfer, distortion):
-        return protocol.PairRecord("a", "b", 0.1, 0.1, 2, 1.0, 0.1, 0.3, chamfer=chamfer, chamfer_one_sided=chamfer,
+        return records.PairRecord("a", "b", 0.1, 0.1, 2, 1.0, 0.1, 0.3, chamfer=chamfer, chamfer_one_sided=chamfer,
                                    deformation_conformal_distortion=distortion)
 
     errors = [np.full(2, 0.1), np.full(2, 0.1)]

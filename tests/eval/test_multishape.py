@@ -19,7 +19,8 @@ from omegaconf import OmegaConf, open_dict
 from shapecorr.cli.evaluate import evaluate
 from shapecorr.errors import ConfigError
 from shapecorr.eval import multi_shape
-from shapecorr.matching.deep_shells import DeepShellsConfig, make_spectral_shape
+from shapecorr.geometry.spectral_shape import make_spectral_shape
+from shapecorr.matching.deep_shells import DeepShellsConfig
 from shapecorr.matching.gmsm_query import alignment_cost_of_maps
 from shapecorr.matching.result import MatchResult
 

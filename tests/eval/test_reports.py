@@ -10,7 +10,7 @@ from PIL import Image
 
 from shapecorr.errors import CorrespondenceError
 from shapecorr.eval import reports
-from shapecorr.eval.protocol import PairRecord
+from shapecorr.eval.records import PairRecord
 from shapecorr.viz import pck
 
 

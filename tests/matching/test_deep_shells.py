@@ -16,6 +16,7 @@ from shapecorr.geometry.mesh import triangle_areas
 from shapecorr.geometry.normals import vertex_normals
 from shapecorr.geometry.remeshing import remesh
 from shapecorr.geometry.shot_descriptor import shot
+from shapecorr.geometry.spectral_shape import make_spectral_shape
 from shapecorr.matching.deep_shells import (
     DeepShellsConfig,
     _shell,
@@ -25,7 +26,6 @@ from shapecorr.matching.deep_shells import (
     deformation_from_pairs,
     deformation_from_plans,
     log_spaced_k,
-    make_spectral_shape,
     product_embedding_maps,
     random_samples,
     refine_deep_shells,

@@ -17,7 +17,8 @@ import torch
 from shapecorr.data.io import read_vts
 from shapecorr.geometry.geodesics import geodesic_distances
 from shapecorr.geometry.mesh import triangle_areas
-from shapecorr.matching.deep_shells import DeepShellsConfig, deep_shells_query, make_spectral_shape
+from shapecorr.geometry.spectral_shape import make_spectral_shape
+from shapecorr.matching.deep_shells import DeepShellsConfig, deep_shells_query
 from shapecorr.nn.spectral_conv import SpectralFilterBank, load_original_deep_shells_weights
 
 pytestmark = pytest.mark.reference

@@ -23,7 +23,7 @@ from shapecorr.data.cache import ShapeCache
 from shapecorr.data.datasets import PairSample, ShapeSample
 from shapecorr.data.operators import DEFAULT_GRADIENT_RIDGE, compute_operator
 from shapecorr.data.shape import make_shape
-from shapecorr.eval.protocol import shard_pairs
+from shapecorr.eval.sharding import shard_pairs
 from shapecorr.geometry.diffusion_operators import GRADIENT_RIDGE, diffusion_gradients
 from shapecorr.geometry.laplace_beltrami import eigenbasis
 from shapecorr.losses.shells import graph_alignment_loss, level_energy_loss

@@ -254,7 +254,7 @@ def _plain_copy(model: NeuroMorph) -> NeuroMorph:
 
 
 def test_interpolation_metrics_use_the_frame_at_t1(pair, tmp_path, monkeypatch):
-    from shapecorr.eval.protocol import score_deformation
+    from shapecorr.eval.scoring import score_deformation
 
     model = _model(tmp_path, interp_times=[0.0, 0.5, 1.5]).eval()  # t = 1 missing: computed for the metrics
     logged = {}
