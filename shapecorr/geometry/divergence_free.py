@@ -303,25 +303,34 @@ def basis_fields(points: torch.Tensor, n_modes: int = PUBLISHED_N_MODES, convent
     -------
     (n, 3 K^3, 3) float
         ``velocity(points, a) == einsum("nfi,f->ni", basis_fields(points), a)``. Memory ``n * 9 K^3`` floats:
-        chunk the points for large n.
+        chunk the points for large n. Stored component-major (the transposed view of an ``(n, 3, 3 K^3)``
+        tensor), so ``out.transpose(1, 2)`` is contiguous: the rows ``(n, i)`` of a least-squares system.
     """
     _check_convention(convention)
     _check_points(points)
     if n_modes < 1:
         raise ConfigError(f"n_modes must be >= 1, got {n_modes}")
     k = int(n_modes)
-    sin, dcos, _ = _factors(points, k)
+    n = points.shape[0]
+    sin, dcos, _ = _factors(points, k, second=False)
     sx, sy, sz = sin[:, 0], sin[:, 1], sin[:, 2]
     cx, cy, cz = dcos[:, 0], dcos[:, 1], dcos[:, 2]
+
     def outer(fa, fb, fc):
-        return fa[:, :, None, None] * fb[:, None, :, None] * fc[:, None, None, :]
-    grad = torch.stack((outer(cx, sy, sz), outer(sx, cy, sz), outer(sx, sy, cz)), dim=-1)  # (n, K, K, K, 3_j)
-    grad = grad.reshape(points.shape[0], k**3, 3)
-    # grad(psi) x e_d for d = 0, 1, 2: (n, K^3, 3_d, 3_i)
-    eye = torch.eye(3, dtype=points.dtype, device=points.device)
-    fields = torch.cross(grad[:, :, None, :].expand(-1, -1, 3, -1), eye.expand(points.shape[0], k**3, 3, 3), dim=-1)
-    fields = fields.reshape(points.shape[0], 3 * k**3, 3)
-    return fields * basis_scales(k, convention, dtype=points.dtype, device=points.device)[None, :, None]
+        return (fa[:, :, None] * fb[:, None, :]).reshape(n, k * k, 1) * fc[:, None, :]  # (n, K^2, K)
+
+    # d_j psi for j = 0, 1, 2, each (n, K^3) in (a, b, c) order
+    grad = (outer(cx, sy, sz).reshape(n, k**3), outer(sx, cy, sz).reshape(n, k**3), outer(sx, sy, cz).reshape(n, k**3))
+    scales = basis_scales(k, convention, dtype=points.dtype, device=points.device).reshape(k**3, 3)
+    # (grad psi x e_d)_i = eps_ijd g_j: for each component i, +g_{i+1} at d = i + 2, -g_{i+2} at d = i + 1 and
+    # 0 at d = i (indices mod 3). Every nonzero entry is one product sign * g_j * s_d, written into its slot.
+    out = points.new_empty(n, 3, k**3, 3)  # (n, i, abc, d)
+    for i in range(3):
+        j1, j2 = (i + 1) % 3, (i + 2) % 3
+        out[:, i, :, i] = 0.0
+        out[:, i, :, j2] = grad[j1] * scales[:, j2]
+        out[:, i, :, j1] = grad[j2] * -scales[:, j1]
+    return out.reshape(n, 3, 3 * k**3).transpose(1, 2)
 
 
 def resize_coefficients(coeffs: torch.Tensor, n_modes: int) -> torch.Tensor:

@@ -34,6 +34,24 @@ def test_published_size_and_order():
     torch.testing.assert_close(fields[:, 6], expected)
 
 
+def test_basis_is_the_scaled_cross_product_exactly(points):
+    """Every field equals s_f * (grad psi_abc x e_d), built here with torch.cross, to the last bit."""
+    k = torch.arange(1, K + 1, dtype=points.dtype)
+    sin, cos = torch.sin(points[:, :, None] * (np.pi * k)), torch.cos(points[:, :, None] * (np.pi * k)) * k
+    def outer(fa, fb, fc):
+        return fa[:, :, None, None] * fb[:, None, :, None] * fc[:, None, None, :]
+    grad = torch.stack((outer(cos[:, 0], sin[:, 1], sin[:, 2]), outer(sin[:, 0], cos[:, 1], sin[:, 2]),
+                        outer(sin[:, 0], sin[:, 1], cos[:, 2])), dim=-1).reshape(points.shape[0], K**3, 1, 3)
+    eye = torch.eye(3, dtype=points.dtype).expand(points.shape[0], K**3, 3, 3)
+    crossed = torch.cross(grad.expand(-1, -1, 3, -1), eye, dim=-1).reshape(points.shape[0], 3 * K**3, 3)
+    for convention in df.CONVENTIONS:
+        expected = crossed * df.basis_scales(K, convention, dtype=points.dtype)[None, :, None]
+        assert torch.equal(df.basis_fields(points, K, convention), expected)
+    # differentiable in the points
+    pts = points[:6].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda p: df.basis_fields(p, 2), (pts,))
+
+
 def test_every_basis_field_is_divergence_free(points):
     eps = 1e-5
     div = torch.zeros(points.shape[0], df.n_fields(K), dtype=points.dtype)
