@@ -119,7 +119,11 @@ def _inf_norm(m: torch.Tensor) -> torch.Tensor:
 
 def _scatter_rows(n: int, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
     """``(B, n, c)`` zeros with ``values (B, r, c)`` added at rows ``index (B, r)``."""
-    out = values.new_zeros(values.shape[0], n, values.shape[2])
+    return _scatter_rows_onto(values.new_zeros(values.shape[0], n, values.shape[2]), index, values)
+
+
+def _scatter_rows_onto(out: torch.Tensor, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """``out (B, n, c)`` with ``values (B, r, c)`` added at rows ``index (B, r)``, in place, in the order of r."""
     return out.scatter_add_(1, index[:, :, None].expand(-1, -1, values.shape[2]), values)
 
 
@@ -248,14 +252,54 @@ def _row_normal_equations(phi: torch.Tensor, rows: torch.Tensor, values: torch.T
     return torch.matmul(phi.transpose(0, 1), counts * phi), torch.matmul(phi.transpose(0, 1), summed)
 
 
+def _all_vertices(samples: torch.Tensor, n: int) -> bool:
+    """Whether ``samples (s,)`` is ``0, 1, ..., n - 1`` (the main run's full resolution)."""
+    return samples.numel() == n and bool(torch.equal(samples, torch.arange(n, device=samples.device)))
+
+
+def _full_normal_equations(phi: torch.Tensor, base: torch.Tensor, rows: torch.Tensor, values: torch.Tensor,
+                           vertex_weights: torch.Tensor | None = None):
+    """:func:`_row_normal_equations` for the pairs ``[(i, base_i) for every vertex i] + [(rows_r, values_r)]``.
+
+    The main run pairs every vertex of X with one target (X -> Y) and adds the Y -> X pairs. The per-vertex sums
+    start from ``base`` and add the extra rows in their order: the same additions as scattering all rows onto
+    zeros, without forming the concatenated rows.
+
+    Parameters
+    ----------
+    phi : (n, k) float64
+    base : (B, n, c) float64
+        Target of each vertex's own pair (overwritten: the sums are accumulated in place).
+    rows : (B, r) int64
+        Vertex of every further pair.
+    values : (B, r, c) float64
+    vertex_weights : (n,) float64, optional
+
+    Returns
+    -------
+    gram : (B, k, k) float64
+    rhs : (B, k, c) float64
+    """
+    b = rows.shape[0]
+    counts = _scatter_rows_onto(torch.ones(b, phi.shape[0], 1, dtype=phi.dtype, device=phi.device), rows,
+                                torch.ones(b, rows.shape[1], 1, dtype=phi.dtype, device=phi.device))
+    summed = _scatter_rows_onto(base, rows, values)
+    if vertex_weights is not None:
+        counts = counts * vertex_weights[None, :, None]
+        summed = vertex_weights[None, :, None] * summed
+    return torch.matmul(phi.transpose(0, 1), counts * phi), torch.matmul(phi.transpose(0, 1), summed)
+
+
 def _tau_system(pair: PairTensors, run: RunSettings, shell_x, shell_y, assign, assign_inv, k):
     """Data part of the ``tau`` normal equations (not area weighted, as in the original): (B, k, k), (B, k, 3)."""
     b = shell_x.shape[0]
     sx, sy = run.samples_x[None].expand(b, -1), run.samples_y[None].expand(b, -1)
     sx64, sy64 = shell_x.to(torch.float64), shell_y.to(torch.float64)[None]
+    extra = gather_rows(sy64, sy) - gather_rows(sx64, assign_inv)
+    if _all_vertices(run.samples_x, pair.n_x):
+        return _full_normal_equations(pair.phi_x64[:, :k], gather_rows(sy64, assign) - sx64, assign_inv, extra)
     rows = torch.cat([sx, assign_inv], 1)
-    target = torch.cat([gather_rows(sy64, assign) - gather_rows(sx64, sx),
-                        gather_rows(sy64, sy) - gather_rows(sx64, assign_inv)], 1)
+    target = torch.cat([gather_rows(sy64, assign) - gather_rows(sx64, sx), extra], 1)
     return _row_normal_equations(pair.phi_x64[:, :k], rows, target)
 
 
@@ -299,10 +343,14 @@ def functional_map(pair: PairTensors, run: RunSettings, kk: int, assign=None, as
     if assign is not None:
         b = assign.shape[0]
         sx, sy = run.samples_x[None].expand(b, -1), run.samples_y[None].expand(b, -1)
-        rows = torch.cat([sx, assign_inv], 1)
         phi_y = pair.phi_y64[:, :kk][None]
-        targets = torch.cat([gather_rows(phi_y, assign), gather_rows(phi_y, sy)], 1)
-        gram, rhs = _row_normal_equations(pair.phi_x64[:, :kk], rows, targets, pair.mass_x.to(f64))
+        if _all_vertices(run.samples_x, pair.n_x):
+            gram, rhs = _full_normal_equations(pair.phi_x64[:, :kk], gather_rows(phi_y, assign), assign_inv,
+                                               gather_rows(phi_y, sy), pair.mass_x.to(f64))
+        else:
+            rows = torch.cat([sx, assign_inv], 1)
+            targets = torch.cat([gather_rows(phi_y, assign), gather_rows(phi_y, sy)], 1)
+            gram, rhs = _row_normal_equations(pair.phi_x64[:, :kk], rows, targets, pair.mass_x.to(f64))
         lambda_feat = run.lambda_feat
     else:
         b = batch
