@@ -277,6 +277,7 @@ def measure(case: str, golden: Path, device: str, repeats: int, timeout: float, 
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", case, "--golden", str(golden),
            "--device", device_name, "--threads", str(threads), "--repeats", str(repeats), "--warmup", str(warmup)]
     env = dict(os.environ, OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
+    load_before = os.getloadavg()[0]
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
         try:
             proc = subprocess.run(cmd, stdout=out, stderr=err, text=True, cwd=REPO, env=env, timeout=timeout)
@@ -288,7 +289,10 @@ def measure(case: str, golden: Path, device: str, repeats: int, timeout: float, 
         return {"case": case, "device": device, "error": stderr.strip().splitlines()[-1] if stderr.strip() else
                 f"exit {proc.returncode}"}
     result = json.loads(stdout.strip().splitlines()[-1])
-    result["device"] = device
+    # each result keeps its own provenance: the file merges results of several runs
+    result.update(device=device, date_utc=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                  command=" ".join([Path(sys.executable).name, *sys.argv]), load_average_1min_before=load_before,
+                  load_average_1min_after=os.getloadavg()[0])
     return result
 
 
