@@ -19,14 +19,19 @@ Cases (the units of the speed table of docs/speed.md):
 * ``gmsm_query``: G-MSM's fast one-level query of the pair;
 * ``hamiltonian_published``: one Adam iteration of Hamiltonian interpolation at the published setting (K = 8,
   i.e. 1536 fields, 2000 samples, 16 steps): simulation + backward;
-* ``hamiltonian_small``: the same at K = 4, 1000 samples.
+* ``hamiltonian_small``: the same at K = 4, 1000 samples;
+* ``smooth_shells_query``: one Smooth Shells query of the FAUST_r pair ``tr_reg_080 -> tr_reg_081`` (read from
+  ``$SHAPECORR_FAUST_R`` through the data pipeline of ``evaluate.py data=faust_r``) with the default
+  ``model=smooth_shells`` (the published isometric preset: rigid stage, 100 random-search proposals, 51 layers).
+  The eigenbasis and SHOT come from the project's shape cache (filled before the timing if missing); the
+  original has no figure on this CPU (its paper reports 116 s per query on a GPU machine).
 
-Every (case, device) runs in a fresh Python process: one warm-up call, then ``--repeats`` timed calls (wall and
-process-CPU seconds; the median is reported). Peak memory: the child's resident set high-water mark from the
-moment its inputs are loaded (Linux ``VmHWM`` after resetting it through ``/proc/self/clear_refs``; else the
-process maximum ``ru_maxrss``), on CUDA ``torch.cuda.max_memory_allocated`` over the same span. Results:
-``benchmarks/results/speed.json`` (``--out``), with the originals' figures measured side by side on this kind of
-CPU (``ORIGINAL_REFERENCE``, docs/speed.md) for the ratios.
+Every (case, device) runs in a fresh Python process: ``--warmup`` untimed calls (default 1), then ``--repeats``
+timed calls (wall and process-CPU seconds; the median is reported). Peak memory: the child's resident set
+high-water mark from the moment its inputs are loaded (Linux ``VmHWM`` after resetting it through
+``/proc/self/clear_refs``; else the process maximum ``ru_maxrss``), on CUDA ``torch.cuda.max_memory_allocated``
+over the same span. Results: ``benchmarks/results/speed.json`` (``--out``), with the originals' figures measured
+side by side on this kind of CPU (``ORIGINAL_REFERENCE``, docs/speed.md) for the ratios.
 """
 
 from __future__ import annotations
@@ -56,7 +61,9 @@ TRAIN_SAMPLES = 2000
 HAMILTONIAN_SETTINGS = {"hamiltonian_published": {"n_modes": 8, "samples": 2000},
                         "hamiltonian_small": {"n_modes": 4, "samples": 1000}}
 CASES = ("deep_shells_train", "deep_shells_query", "gmsm_train", "gmsm_query", "hamiltonian_published",
-         "hamiltonian_small")
+         "hamiltonian_small", "smooth_shells_query")
+#: The FAUST_r pair of ``smooth_shells_query`` (the same pair as the golden inputs).
+FAUST_R_PAIR = ("tr_reg_080", "tr_reg_081")
 DEVICES = ("cpu1", "cpu2", "cuda")
 #: The originals' CPU seconds per unit (one thread, medians of CPU time, measured side by side with shapecorr on
 #: a 2-core Xeon; the originals run with a k-d tree in place of torch_cluster's knn). docs/speed.md.
@@ -67,6 +74,11 @@ ORIGINAL_REFERENCE = {
     "gmsm_query": {"seconds": 2.98, "peak_memory_mb": None},
     "hamiltonian_published": {"seconds": 62.1, "peak_memory_mb": 3470.0},
     "hamiltonian_small": {"seconds": 1.42, "peak_memory_mb": None},
+}
+#: Figures of an original without a measurement on this CPU: recorded as notes, not as ratios.
+ORIGINAL_NOTES = {
+    "smooth_shells_query": "the Smooth Shells paper (CVPR 2020, §6) reports 116 s per query on a GPU machine; "
+                           "target of the speed issue: <= 30 s CPU at one thread",
 }
 #: Per-unit targets of the speed issue: the original's seconds divided by shapecorr's.
 TARGET_RATIO = {"deep_shells_train": 10.0, "deep_shells_query": 6.0, "gmsm_train": 8.0, "gmsm_query": 8.0,
@@ -190,6 +202,26 @@ def _hamiltonian(golden: Path, device, setting: dict):
     return op
 
 
+def _smooth_shells(device):
+    """One query of the FAUST_r pair with ``model=smooth_shells`` as ``evaluate.py data=faust_r`` builds it."""
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from shapecorr.cli.matcher_factory import build_matcher
+    from shapecorr.data.operators import required_request
+
+    if not os.environ.get("SHAPECORR_FAUST_R"):
+        raise SystemExit("error: smooth_shells_query needs $SHAPECORR_FAUST_R (the FAUST_r folder)")
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        cfg = compose("evaluate", overrides=["model=smooth_shells", "data=faust_r"])
+    matcher = build_matcher(cfg, device)
+    dm = instantiate(cfg.data, _convert_="object")
+    dm.with_operators(required_request(matcher))
+    shapes = dm.shapes("test")
+    x, y = (shapes[shapes.index(name)].to(device) for name in FAUST_R_PAIR)
+    return lambda: int(matcher.match(x, y).p2p.sum())
+
+
 def build_case(case: str, golden: Path, device):
     """The measured operation of ``case`` (a zero-argument callable), inputs loaded."""
     if case in ("deep_shells_train", "deep_shells_query"):
@@ -198,10 +230,12 @@ def build_case(case: str, golden: Path, device):
         return _gmsm(golden, device, train=case.endswith("train"))
     if case in HAMILTONIAN_SETTINGS:
         return _hamiltonian(golden, device, HAMILTONIAN_SETTINGS[case])
+    if case == "smooth_shells_query":
+        return _smooth_shells(device)
     raise SystemExit(f"error: unknown case {case!r}; one of {CASES}")
 
 
-def run_child(case: str, golden: Path, device_name: str, threads: int, repeats: int) -> dict:
+def run_child(case: str, golden: Path, device_name: str, threads: int, repeats: int, warmup: int = 1) -> dict:
     import torch
 
     torch.set_num_threads(threads)
@@ -211,12 +245,12 @@ def run_child(case: str, golden: Path, device_name: str, threads: int, repeats: 
     op = build_case(case, golden, device)
     cuda_base, baseline_kb, reset = bench_common.start_memory_span(device)
     walls, cpus, value = [], [], None
-    for i in range(repeats + 1):  # the first call warms up (allocator, lazy initialization, kernels)
+    for i in range(repeats + warmup):  # the first calls warm up (allocator, lazy initialization, kernels)
         wall, cpu = time.perf_counter(), time.process_time()
         value = op()
         if cuda:
             torch.cuda.synchronize(device)
-        if i > 0:
+        if i >= warmup:
             walls.append(time.perf_counter() - wall)
             cpus.append(time.process_time() - cpu)
     hwm = bench_common.status_kb("VmHWM") if reset else None
@@ -238,11 +272,12 @@ def run_child(case: str, golden: Path, device_name: str, threads: int, repeats: 
 # ----------------------------------------------------------------------------------------------------------
 # Parent: one fresh process per (case, device)
 # ----------------------------------------------------------------------------------------------------------
-def measure(case: str, golden: Path, device: str, repeats: int, timeout: float) -> dict:
+def measure(case: str, golden: Path, device: str, repeats: int, timeout: float, warmup: int = 1) -> dict:
     device_name, threads = ("cuda", 1) if device == "cuda" else ("cpu", int(device[3:]))
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", case, "--golden", str(golden),
-           "--device", device_name, "--threads", str(threads), "--repeats", str(repeats)]
+           "--device", device_name, "--threads", str(threads), "--repeats", str(repeats), "--warmup", str(warmup)]
     env = dict(os.environ, OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
+    load_before = os.getloadavg()[0]
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
         try:
             proc = subprocess.run(cmd, stdout=out, stderr=err, text=True, cwd=REPO, env=env, timeout=timeout)
@@ -254,7 +289,10 @@ def measure(case: str, golden: Path, device: str, repeats: int, timeout: float) 
         return {"case": case, "device": device, "error": stderr.strip().splitlines()[-1] if stderr.strip() else
                 f"exit {proc.returncode}"}
     result = json.loads(stdout.strip().splitlines()[-1])
-    result["device"] = device
+    # each result keeps its own provenance: the file merges results of several runs
+    result.update(device=device, date_utc=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                  command=" ".join([Path(sys.executable).name, *sys.argv]), load_average_1min_before=load_before,
+                  load_average_1min_after=os.getloadavg()[0])
     return result
 
 
@@ -280,6 +318,7 @@ def main(argv=None) -> int:
     parser.add_argument("--cases", nargs="+", default=["all"], help=f"any of {CASES} (default all)")
     parser.add_argument("--devices", nargs="+", default=list(DEVICES), help="cpu1, cpu2, cuda (default all three)")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--warmup", type=int, default=1, help="untimed calls before the timed ones (default 1)")
     parser.add_argument("--timeout", type=float, default=1800.0, help="seconds per (case, device) process")
     parser.add_argument("--out", type=Path, default=RESULT)
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
@@ -291,7 +330,7 @@ def main(argv=None) -> int:
         print(f"error: {golden}: no inputs_{PAIR}.npz (set --golden or $SHAPECORR_DEEP_SHELLS_GOLDEN)", file=sys.stderr)
         return 2
     if args.child:
-        print(json.dumps(run_child(args.child, golden, args.device, args.threads, args.repeats)))
+        print(json.dumps(run_child(args.child, golden, args.device, args.threads, args.repeats, args.warmup)))
         return 0
     cases = list(CASES) if args.cases == ["all"] else args.cases
     unknown = sorted(set(cases) - set(CASES)) + sorted(set(args.devices) - set(DEVICES))
@@ -306,7 +345,7 @@ def main(argv=None) -> int:
     results = []
     for case in cases:
         for device in devices:
-            result = measure(case, golden, device, args.repeats, args.timeout)
+            result = measure(case, golden, device, args.repeats, args.timeout, args.warmup)
             results.append(result)
             shown = result.get("error") or (f"cpu {result['cpu_seconds_median']:.2f} s, wall "
                                             f"{result['seconds_median']:.2f} s, peak {result['peak_rss_mb']:.0f} MB")
@@ -318,10 +357,12 @@ def main(argv=None) -> int:
         "benchmark": "speed",
         "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
-        "inputs": {"golden": PAIR, "train_samples": TRAIN_SAMPLES, "hamiltonian": HAMILTONIAN_SETTINGS},
+        "inputs": {"golden": PAIR, "train_samples": TRAIN_SAMPLES, "hamiltonian": HAMILTONIAN_SETTINGS,
+                   "faust_r_pair": list(FAUST_R_PAIR), "faust_r": os.environ.get("SHAPECORR_FAUST_R")},
         "repeats": args.repeats,
         "machine": bench_common.machine_info(),
         "original_reference": ORIGINAL_REFERENCE,
+        "original_notes": ORIGINAL_NOTES,
         "target_ratio": TARGET_RATIO,
         "results": sorted(merged.values(), key=lambda r: (CASES.index(r["case"]), r["device"])),
     }

@@ -26,6 +26,7 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+import scipy
 import torch
 from scipy.spatial import cKDTree
 
@@ -43,18 +44,44 @@ BATCH_BLOCK_ENTRIES = 1 << 24
 NN_BACKENDS = ("auto", "kdtree", "brute")
 
 
-def _check(emb_x: torch.Tensor, emb_y: torch.Tensor) -> None:
+#: Message of the error raised for non-finite embeddings.
+NOT_FINITE = "nearest neighbours: the embedding contains NaN or Inf"
+#: scipy >= 1.11 refuses non-finite tree points and queries itself (a ValueError, raised here as NumericalError), so
+#: the k-d tree backend skips its own pass over the embeddings; older versions return garbage indices instead.
+SCIPY_CHECKS_FINITE = tuple(int(part) for part in scipy.__version__.split(".")[:2]) >= (1, 11)
+
+
+def _check(emb_x: torch.Tensor, emb_y: torch.Tensor, finite: bool = True) -> None:
     if emb_x.dim() != 2 or emb_y.dim() != 2 or emb_x.shape[1] != emb_y.shape[1]:
         raise ConfigError(f"nearest neighbours: need (n, d) and (m, d), got {tuple(emb_x.shape)}, {tuple(emb_y.shape)}")
     if emb_x.shape[0] == 0 or emb_y.shape[0] == 0:
         raise ConfigError("nearest neighbours: empty point set")
-    if not (torch.isfinite(emb_x).all() and torch.isfinite(emb_y).all()):
-        raise NumericalError("nearest neighbours: the embedding contains NaN or Inf")
+    if finite and not (torch.isfinite(emb_x).all() and torch.isfinite(emb_y).all()):
+        raise NumericalError(NOT_FINITE)
+
+
+def _tree(points: np.ndarray) -> cKDTree:
+    """``cKDTree(points)``; scipy refuses non-finite points (and queries), raised here as ``NumericalError``."""
+    try:
+        return cKDTree(points)
+    except ValueError as err:
+        if "finite" in str(err):
+            raise NumericalError(NOT_FINITE) from None
+        raise
+
+
+def _query(tree: cKDTree, queries: np.ndarray, workers: int = 1) -> np.ndarray:
+    """Index of the nearest tree point of every query (int64); non-finite queries raise ``NumericalError``."""
+    try:
+        return np.asarray(tree.query(queries, k=1, workers=workers)[1], dtype=np.int64)
+    except ValueError as err:
+        if "finite" in str(err):
+            raise NumericalError(NOT_FINITE) from None
+        raise
 
 
 def _nearest(points: np.ndarray, queries: np.ndarray, workers: int) -> np.ndarray:
-    _, nn = cKDTree(points).query(queries, k=1, workers=workers)
-    return np.asarray(nn, dtype=np.int64)
+    return _query(_tree(points), queries, workers)
 
 
 def _kdtree(emb_x: torch.Tensor, emb_y: torch.Tensor, workers: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -135,9 +162,9 @@ def bidirectional_nearest_neighbors(
     """
     if backend not in NN_BACKENDS:
         raise ConfigError(f"nearest-neighbour backend must be one of {NN_BACKENDS}, got {backend!r}")
-    _check(emb_x, emb_y)
     if backend == "auto":
         backend = "brute" if emb_x.device.type == "cuda" else "kdtree"
+    _check(emb_x, emb_y, finite=not (backend == "kdtree" and SCIPY_CHECKS_FINITE))
     if backend == "kdtree":
         return _kdtree(emb_x, emb_y, workers)
     return _brute(emb_x, emb_y, int(block_size), exact)
@@ -178,12 +205,12 @@ def batched_nearest_neighbors(queries: torch.Tensor, points: torch.Tensor, backe
     if backend == "kdtree":
         pts = points.detach().to(torch.float64).cpu().numpy()
         qrs = queries.detach().to(torch.float64).cpu().numpy()
-        shared = cKDTree(pts[0]) if pts.shape[0] == 1 else None
+        shared = _tree(pts[0]) if pts.shape[0] == 1 else None
         out = np.empty((b, q), dtype=np.int64)
 
         def one(i: int) -> None:
-            tree = shared if shared is not None else cKDTree(pts[i])
-            out[i] = tree.query(qrs[0] if qrs.shape[0] == 1 else qrs[i], k=1)[1]
+            tree = shared if shared is not None else _tree(pts[i])
+            out[i] = _query(tree, qrs[0] if qrs.shape[0] == 1 else qrs[i])
 
         threads = min(torch.get_num_threads(), b)
         if threads < 2:

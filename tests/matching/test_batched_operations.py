@@ -35,6 +35,12 @@ def test_batched_nearest_neighbours_errors():
         batched_nearest_neighbors(x, x, backend="ball")
     with pytest.raises(ConfigError):
         batched_nearest_neighbors(x[0], x)
+    # non-finite queries or points (k-d tree: a shared tree and one tree per batch element)
+    bad = torch.randn(2, 4, 3)
+    bad[1, 2, 0] = float("nan")
+    for queries, points in ((bad, x), (x, bad), (bad, x[:1]), (x[:1], bad)):
+        with pytest.raises(NumericalError, match="NaN or Inf"):
+            batched_nearest_neighbors(queries, points, backend="kdtree")
 
 
 def test_batched_solve_equals_one_system_at_a_time():

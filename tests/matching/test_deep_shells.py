@@ -192,10 +192,16 @@ def test_nearest_neighbours_errors():
     x = torch.zeros(4, 3)
     with pytest.raises(ConfigError):
         bidirectional_nearest_neighbors(x, x, backend="ball")
-    bad = x.clone()
-    bad[0, 0] = float("inf")
-    with pytest.raises(NumericalError):
-        bidirectional_nearest_neighbors(bad, x)
+    # non-finite points on either side, every backend (the k-d tree relies on scipy's own check where it has one)
+    for value in (float("inf"), float("nan")):
+        bad = x.clone()
+        bad[0, 0] = value
+        for kwargs in (dict(), dict(backend="kdtree", workers=1), dict(backend="kdtree", workers=2),
+                       dict(backend="brute")):
+            with pytest.raises(NumericalError, match="NaN or Inf"):
+                bidirectional_nearest_neighbors(bad, x, **kwargs)
+            with pytest.raises(NumericalError, match="NaN or Inf"):
+                bidirectional_nearest_neighbors(x, bad, **kwargs)
 
 
 # --------------------------------------------------------------------------------------------------------

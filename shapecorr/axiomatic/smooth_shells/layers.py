@@ -119,7 +119,11 @@ def _inf_norm(m: torch.Tensor) -> torch.Tensor:
 
 def _scatter_rows(n: int, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
     """``(B, n, c)`` zeros with ``values (B, r, c)`` added at rows ``index (B, r)``."""
-    out = values.new_zeros(values.shape[0], n, values.shape[2])
+    return _scatter_rows_onto(values.new_zeros(values.shape[0], n, values.shape[2]), index, values)
+
+
+def _scatter_rows_onto(out: torch.Tensor, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """``out (B, n, c)`` with ``values (B, r, c)`` added at rows ``index (B, r)``, in place, in the order of r."""
     return out.scatter_add_(1, index[:, :, None].expand(-1, -1, values.shape[2]), values)
 
 
@@ -248,31 +252,97 @@ def _row_normal_equations(phi: torch.Tensor, rows: torch.Tensor, values: torch.T
     return torch.matmul(phi.transpose(0, 1), counts * phi), torch.matmul(phi.transpose(0, 1), summed)
 
 
+def _all_vertices(samples: torch.Tensor, n: int) -> bool:
+    """Whether ``samples (s,)`` is ``0, 1, ..., n - 1`` (the main run's full resolution)."""
+    return samples.numel() == n and bool(torch.equal(samples, torch.arange(n, device=samples.device)))
+
+
+def _at_samples(values: torch.Tensor, samples: torch.Tensor, b: int) -> torch.Tensor:
+    """``values (1, n, c)`` at the rows ``samples (s,)`` for a batch of ``b``: ``(b, s, c)`` (a view when all rows)."""
+    if _all_vertices(samples, values.shape[1]):
+        return values.expand(b, -1, -1)
+    return gather_rows(values, samples[None].expand(b, -1))
+
+
+def _full_normal_equations(phi: torch.Tensor, base: torch.Tensor, rows: torch.Tensor, values: torch.Tensor,
+                           vertex_weights: torch.Tensor | None = None):
+    """:func:`_row_normal_equations` for the pairs ``[(i, base_i) for every vertex i] + [(rows_r, values_r)]``.
+
+    The main run pairs every vertex of X with one target (X -> Y) and adds the Y -> X pairs. The per-vertex sums
+    start from ``base`` and add the extra rows in their order: the same additions as scattering all rows onto
+    zeros, without forming the concatenated rows.
+
+    Parameters
+    ----------
+    phi : (n, k) float64
+    base : (B, n, c) float64
+        Target of each vertex's own pair (overwritten: the sums are accumulated in place).
+    rows : (B, r) int64
+        Vertex of every further pair.
+    values : (B, r, c) float64
+    vertex_weights : (n,) float64, optional
+
+    Returns
+    -------
+    gram : (B, k, k) float64
+    rhs : (B, k, c) float64
+    """
+    b = rows.shape[0]
+    counts = _scatter_rows_onto(torch.ones(b, phi.shape[0], 1, dtype=phi.dtype, device=phi.device), rows,
+                                torch.ones(b, rows.shape[1], 1, dtype=phi.dtype, device=phi.device))
+    summed = _scatter_rows_onto(base, rows, values)
+    if vertex_weights is not None:
+        counts = counts * vertex_weights[None, :, None]
+        summed = vertex_weights[None, :, None] * summed
+    return torch.matmul(phi.transpose(0, 1), counts * phi), torch.matmul(phi.transpose(0, 1), summed)
+
+
 def _tau_system(pair: PairTensors, run: RunSettings, shell_x, shell_y, assign, assign_inv, k):
     """Data part of the ``tau`` normal equations (not area weighted, as in the original): (B, k, k), (B, k, 3)."""
     b = shell_x.shape[0]
-    sx, sy = run.samples_x[None].expand(b, -1), run.samples_y[None].expand(b, -1)
+    sx = run.samples_x[None].expand(b, -1)
     sx64, sy64 = shell_x.to(torch.float64), shell_y.to(torch.float64)[None]
+    extra = _at_samples(sy64, run.samples_y, b) - gather_rows(sx64, assign_inv)
+    if _all_vertices(run.samples_x, pair.n_x):
+        return _full_normal_equations(pair.phi_x64[:, :k], gather_rows(sy64, assign) - sx64, assign_inv, extra)
     rows = torch.cat([sx, assign_inv], 1)
-    target = torch.cat([gather_rows(sy64, assign) - gather_rows(sx64, sx),
-                        gather_rows(sy64, sy) - gather_rows(sx64, assign_inv)], 1)
+    target = torch.cat([gather_rows(sy64, assign) - gather_rows(sx64, sx), extra], 1)
     return _row_normal_equations(pair.phi_x64[:, :k], rows, target)
 
 
 def _arap_system(pair: PairTensors, shell_x, deformed, k):
-    """ARAP part with the rotations of the current ``X*`` frozen: ``(B, k, k)``, ``(B, k, 3)``, rotations."""
+    """ARAP part with the rotations of the current ``X*`` frozen: ``(B, k, k)``, ``(B, k, 3)`` and the fit.
+
+    The fit is ``(rot_a, rot_b, d)``: the rotations at both ends of every undirected edge ``(B, E, 3, 3)`` float64
+    and the edge vectors ``d = x_a - x_b`` of the shell ``(B, E, 3)`` float64 (for :func:`_arap_targets`).
+    """
     rot = arap_rotations(shell_x, deformed, pair.edges_x).to(torch.float64)  # (B, n, 3, 3): e_X* ~ R e_Xk
     a, b = pair.edges_x[:, 0], pair.edges_x[:, 1]
     eye = torch.eye(3, dtype=torch.float64, device=rot.device)
     d = (shell_x[:, a] - shell_x[:, b]).to(torch.float64)  # x_a - x_b
-    g = torch.matmul(rot[:, a] + rot[:, b] - 2 * eye, d[..., None])[..., 0]
+    rot_a, rot_b = rot[:, a], rot[:, b]
+    g = torch.matmul(rot_a + rot_b - 2 * eye, d[..., None])[..., 0]
     s = torch.zeros_like(shell_x, dtype=torch.float64).index_add_(1, a, g).index_add_(1, b, -g)
     phi = pair.phi_x64[:, :k]
-    return pair.arap_gram[:k, :k], torch.matmul(phi.transpose(0, 1), s), rot
+    return pair.arap_gram[:k, :k], torch.matmul(phi.transpose(0, 1), s), (rot_a, rot_b, d)
 
 
-def _tau_objective(pair, run, shell_x, shell_y, assign, assign_inv, tau, k, rot, arap_weight):
-    """``sum |X* - Y_k[pi]|^2 + sum |X*[pi'] - Y_k|^2 + w sum_directed |(Phi_i - Phi_j) tau - (R_i - I) d_ij|^2``."""
+def _arap_targets(fit):
+    """``(R_a - I) d`` and ``(R_b - I) d`` per undirected edge, ``(B, E, 3)`` each, from :func:`_arap_system`'s fit.
+
+    The ARAP residual of a directed edge is ``(Phi_a - Phi_b) tau`` minus its target; both objective evaluations of a
+    layer use the same targets.
+    """
+    rot_a, rot_b, d = fit
+    eye = torch.eye(3, dtype=torch.float64, device=d.device)
+    return (torch.matmul(rot_a - eye, d[..., None])[..., 0], torch.matmul(rot_b - eye, d[..., None])[..., 0])
+
+
+def _tau_objective(pair, run, shell_x, shell_y, assign, assign_inv, tau, k, targets, arap_weight):
+    """``sum |X* - Y_k[pi]|^2 + sum |X*[pi'] - Y_k|^2 + w sum_directed |(Phi_i - Phi_j) tau - (R_i - I) d_ij|^2``.
+
+    ``targets``: :func:`_arap_targets` (None: no ARAP term).
+    """
     phi = pair.phi_x64[:, :k]
     disp = torch.matmul(phi, tau[:, :k])
     cur = shell_x.to(torch.float64) + disp
@@ -282,14 +352,12 @@ def _tau_objective(pair, run, shell_x, shell_y, assign, assign_inv, tau, k, rot,
     sy = run.samples_y[None].expand(b, -1)
     data = (gather_rows(cur, sx) - gather_rows(sy64, assign)).square().sum((1, 2))
     data = data + (gather_rows(cur, assign_inv) - gather_rows(sy64, sy)).square().sum((1, 2))
-    if rot is None:
+    if targets is None:
         return data
     a, bb = pair.edges_x[:, 0], pair.edges_x[:, 1]
-    eye = torch.eye(3, dtype=torch.float64, device=rot.device)
-    d = (shell_x[:, a] - shell_x[:, bb]).to(torch.float64)
     delta = disp[:, a] - disp[:, bb]
-    arap = (delta - torch.matmul(rot[:, a] - eye, d[..., None])[..., 0]).square().sum((1, 2))
-    arap = arap + (delta - torch.matmul(rot[:, bb] - eye, d[..., None])[..., 0]).square().sum((1, 2))
+    arap = (delta - targets[0]).square().sum((1, 2))
+    arap = arap + (delta - targets[1]).square().sum((1, 2))
     return data + arap_weight * arap
 
 
@@ -299,10 +367,14 @@ def functional_map(pair: PairTensors, run: RunSettings, kk: int, assign=None, as
     if assign is not None:
         b = assign.shape[0]
         sx, sy = run.samples_x[None].expand(b, -1), run.samples_y[None].expand(b, -1)
-        rows = torch.cat([sx, assign_inv], 1)
         phi_y = pair.phi_y64[:, :kk][None]
-        targets = torch.cat([gather_rows(phi_y, assign), gather_rows(phi_y, sy)], 1)
-        gram, rhs = _row_normal_equations(pair.phi_x64[:, :kk], rows, targets, pair.mass_x.to(f64))
+        if _all_vertices(run.samples_x, pair.n_x):
+            gram, rhs = _full_normal_equations(pair.phi_x64[:, :kk], gather_rows(phi_y, assign), assign_inv,
+                                               _at_samples(phi_y, run.samples_y, b), pair.mass_x.to(f64))
+        else:
+            rows = torch.cat([sx, assign_inv], 1)
+            targets = torch.cat([gather_rows(phi_y, assign), gather_rows(phi_y, sy)], 1)
+            gram, rhs = _row_normal_equations(pair.phi_x64[:, :kk], rows, targets, pair.mass_x.to(f64))
         lambda_feat = run.lambda_feat
     else:
         b = batch
@@ -360,22 +432,23 @@ def match_layer(pair: PairTensors, run: RunSettings, st: LayerState, k: int, fir
             emb_x, emb_y = product_embeddings(pair, st, deformed, normals_x, shell_y, normals_y, run.fac_feat, damping)
             assign, assign_inv = nearest_pairs(pair, run, emb_x, emb_y)
         gram, rhs = _tau_system(pair, run, shell_x, shell_y, assign, assign_inv, k)
-        rot, weight = None, 0.0
+        fit, weight = None, 0.0
         if lambda_arap > 0:
             if pair.arap_gram is None:
                 raise ConfigError("internal: ARAP needed but not prepared")
-            g_arap, z_arap, rot = _arap_system(pair, shell_x, deformed, k)
+            g_arap, z_arap, fit = _arap_system(pair, shell_x, deformed, k)
             weight = lambda_arap * _inf_norm(gram) / _inf_norm(g_arap).clamp_min(1e-300)  # (B,)
             gram = gram + weight[:, None, None] * g_arap
             rhs = rhs + weight[:, None, None] * z_arap
         if run.record:
-            before = _tau_objective(pair, run, shell_x, shell_y, assign, assign_inv, st.tau, k, rot, weight)
+            targets = None if fit is None else _arap_targets(fit)
+            before = _tau_objective(pair, run, shell_x, shell_y, assign, assign_inv, st.tau, k, targets, weight)
         sol = solve_normal_equations(gram, rhs, run.ridge, f"Smooth Shells deformation solve at k={k}")
         tau = st.tau.clone()
         tau[:, :k] = sol
         st.tau = tau
         if run.record:
-            after = _tau_objective(pair, run, shell_x, shell_y, assign, assign_inv, st.tau, k, rot, weight)
+            after = _tau_objective(pair, run, shell_x, shell_y, assign, assign_inv, st.tau, k, targets, weight)
             st.objectives.append(torch.stack([before[0], after[0]]))
         st.fmap = functional_map(pair, run, kk, assign, assign_inv)
         st.pairs = (assign, assign_inv)
