@@ -25,6 +25,9 @@ Protocol:
   alternate, original then shapecorr, ``--rounds`` times per case; the summary is the median over the
   processes of each code. Peak memory: the process's maximum resident set (``ru_maxrss``, imports included),
   and its peak over the timed span (``VmHWM`` reset after the inputs are loaded).
+* ``--no-mmap-variant`` adds a third process per round: shapecorr's step again with glibc told to keep freed
+  large blocks (``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHOLD_``, ``benchmarks/neuromorph_speed.py``'s
+  ``--malloc no-mmap``): the same computation, without the page faults of a fresh ``mmap`` per large tensor.
 * Before the timing, ``--check-golden`` (default ``$SHAPECORR_NEUROMORPH_GOLDEN``, then the shared copy) runs
   the original with the shim on a golden pair with the golden weights and compares its total loss and soft map
   with the stored outputs of the original: the shim must not change the original's numbers.
@@ -55,6 +58,8 @@ DEFAULT_NEUROMORPH_GOLDEN = Path("/work/shared/data/reference/neuromorph_golden"
 #: Golden pair used to check that the original runs unchanged with the shim.
 CHECK_PAIR = "tr_reg_000__tr_reg_013"
 CASES = tuple(speed.NEUROMORPH_SETTINGS)
+#: The codes compared: the original, shapecorr, and shapecorr with glibc keeping freed blocks (optional).
+CODES = ("original", "shapecorr", "shapecorr_no_mmap")
 
 
 def _import_original(original: Path, shim: Path):
@@ -143,8 +148,8 @@ def run_original_check(original: Path, shim: Path, golden: Path) -> dict:
 # ----------------------------------------------------------------------------------------------------------
 # Parent: alternating processes
 # ----------------------------------------------------------------------------------------------------------
-def _run(cmd: list[str], timeout: float) -> dict:
-    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+def _run(cmd: list[str], timeout: float, extra_env: dict | None = None) -> dict:
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", **(extra_env or {}))
     load_before = os.getloadavg()
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, env=env, timeout=timeout)
     if proc.returncode != 0:
@@ -159,8 +164,10 @@ def _summary(results: list[dict]) -> dict:
     out = {}
     for case in {r["case"] for r in results}:
         entry = {}
-        for code in ("original", "shapecorr"):
+        for code in CODES:
             runs = [r for r in results if r["case"] == case and r["code"] == code]
+            if not runs:
+                continue
             entry[code] = {
                 "cpu_seconds_per_process": [r["cpu_seconds_median"] for r in runs],
                 "cpu_seconds_median": statistics.median(r["cpu_seconds_median"] for r in runs),
@@ -175,6 +182,9 @@ def _summary(results: list[dict]) -> dict:
         entry["ratio_per_round"] = per_round
         entry["memory_ratio_process_max"] = (entry["original"]["process_max_rss_mb_median"]
                                              / entry["shapecorr"]["process_max_rss_mb_median"])
+        if "shapecorr_no_mmap" in entry:
+            entry["ratio_cpu_medians_no_mmap"] = (entry["original"]["cpu_seconds_median"]
+                                                  / entry["shapecorr_no_mmap"]["cpu_seconds_median"])
         entry["target_ratio"] = speed.TARGET_RATIO[case]
         out[case] = entry
     return dict(sorted(out.items()))
@@ -192,6 +202,8 @@ def main(argv=None) -> int:
     parser.add_argument("--check-golden", type=Path, default=None,
                         help="neuromorph_golden folder (default $SHAPECORR_NEUROMORPH_GOLDEN, then the shared copy)")
     parser.add_argument("--timeout", type=float, default=1800.0, help="seconds per process")
+    parser.add_argument("--no-mmap-variant", action="store_true",
+                        help="also time shapecorr with glibc keeping freed large blocks (see above)")
     parser.add_argument("--out", type=Path, default=RESULT)
     parser.add_argument("--original-child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--original-check", action="store_true", help=argparse.SUPPRESS)
@@ -210,6 +222,10 @@ def main(argv=None) -> int:
     if args.original_check:
         print(json.dumps(run_original_check(args.original, args.shim, check_golden)))
         return 0
+    # imported here, not at the top: the original's child processes run this script and should load no more
+    # than they need (their peak memory is measured)
+    from neuromorph_speed import GLIBC_NO_MMAP_ENV as no_mmap_env
+
     golden = args.golden or Path(os.environ.get("SHAPECORR_DEEP_SHELLS_GOLDEN", speed.DEFAULT_GOLDEN))
     me = [sys.executable, str(Path(__file__).resolve()), "--original", str(args.original), "--shim", str(args.shim)]
     check = None
@@ -230,12 +246,16 @@ def main(argv=None) -> int:
                                  str(args.repeats)],
                     "shapecorr": speed.child_command(case, golden, "cpu", 1, args.repeats, inputs),
                 }
+                if args.no_mmap_variant:
+                    commands["shapecorr_no_mmap"] = commands["shapecorr"]
                 for code, cmd in commands.items():
                     start = time.perf_counter()
-                    result = _run(cmd, args.timeout)
+                    extra_env = no_mmap_env if code == "shapecorr_no_mmap" else None
+                    result = _run(cmd, args.timeout, extra_env)
+                    result["extra_env"] = extra_env
                     result.update(code=code, round=round_, process_seconds=time.perf_counter() - start)
                     results.append(result)
-                    print(f"{case} round {round_} {code:9s}: cpu {result['cpu_seconds_median']:.2f} s, wall "
+                    print(f"{case} round {round_} {code:17s}: cpu {result['cpu_seconds_median']:.2f} s, wall "
                           f"{result['seconds_median']:.2f} s, max RSS {result['process_max_rss_mb']:.0f} MB, load "
                           f"{result['load_average_before_after'][0][0]:.2f}", flush=True)
     summary = _summary(results)
@@ -249,8 +269,8 @@ def main(argv=None) -> int:
                    "n_verts": [int(arrays["verts_x"].shape[0]), int(arrays["verts_y"].shape[0])],
                    "geodesics": "heat method", "settings": {c: speed.NEUROMORPH_SETTINGS[c] for c in args.cases}},
         "protocol": {"threads": 1, "rounds": args.rounds, "repeats_per_process": args.repeats, "warmup": 1,
-                     "order": "original, shapecorr, alternating", "statistic": "median over processes of each "
-                     "process's median CPU seconds per step"},
+                     "order": "original, shapecorr[, shapecorr_no_mmap], alternating",
+                     "statistic": "median over processes of each process's median CPU seconds per step"},
         "original_code": "github.com/marvin-eisenberger/neuromorph (InterpolationModGeoEC, ArapInterpolationEnergy), "
                          "torch_geometric replaced by a stand-in (EdgeConv with PyG semantics)",
         "original_check": check,
@@ -260,9 +280,13 @@ def main(argv=None) -> int:
     bench_common.write_report(args.out, report)
     for case, entry in summary.items():
         o, s = entry["original"], entry["shapecorr"]
+        extra = ""
+        if "shapecorr_no_mmap" in entry:
+            extra = (f"; no-mmap {entry['shapecorr_no_mmap']['cpu_seconds_median']:.2f} s, "
+                     f"{entry['ratio_cpu_medians_no_mmap']:.1f}x")
         print(f"{case}: original {o['cpu_seconds_median']:.2f} s, shapecorr {s['cpu_seconds_median']:.2f} s, "
               f"ratio {entry['ratio_cpu_medians']:.1f}x; max RSS {o['process_max_rss_mb_median']:.0f} / "
-              f"{s['process_max_rss_mb_median']:.0f} MB")
+              f"{s['process_max_rss_mb_median']:.0f} MB{extra}")
     return 0
 
 
