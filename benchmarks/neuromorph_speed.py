@@ -37,11 +37,25 @@ large blocks (``MALLOC_MMAP_THRESHOLD_``/``MALLOC_TRIM_THRESHOLD_``; in a runnin
 ``mallopt(M_MMAP_THRESHOLD)``/``mallopt(M_TRIM_THRESHOLD)`` do the same): by default every large CPU tensor is a
 fresh ``mmap`` whose pages fault in on first touch, which costs about as much as the arithmetic at T = 7.
 
+With ``--pair FILE`` the shapes and distance matrices are read from an ``.npz`` (``verts_x``, ``faces_x``,
+``dist_x``, the same for ``y``; positions used as given), e.g. the pair of ``benchmarks/speed.py``'s NeuroMorph
+cases, written by ``python benchmarks/speed.py --cases neuromorph_train_t0 --devices cpu1 --neuromorph-inputs
+FILE``.
+
+``--parts`` measures where a ``fast`` training step's time goes instead: every part in isolation, forward and
+backward, on the same pair (inputs of a part detached, fixed random upstream gradients of the right shapes):
+both feature nets, the two soft maps (one exponential), the interpolator (T + 1 frames), registration + ARAP,
+the geodesic distortion (T = 0 only: the published schedule sets its weight to 0 with T > 0), the Adam step;
+their sum next to the whole step, the one-thread GEMM rate on the geodesic term's ``n x n`` products, and
+``torch.profiler``'s operator table of one whole step (self CPU time, top rows). Results:
+``benchmarks/results/neuromorph_profile.json`` by default.
+
 Usage::
 
     python benchmarks/neuromorph_speed.py [--threads 2 1] [--repeats 5] [--naive-repeats 2] [--faust-root DIR]
         [--variants fast baseline naive fast_bf16] [--baseline-src DIR] [--malloc default no-mmap]
-        [--queries 5] [--out benchmarks/results/neuromorph_speed.json]
+        [--queries 5] [--pair FILE] [--out benchmarks/results/neuromorph_speed.json]
+    python benchmarks/neuromorph_speed.py --parts --pair FILE --threads 1 --steps 0 7 --repeats 5
 """
 
 from __future__ import annotations
@@ -93,6 +107,9 @@ STAGES = ("feature_nets_fwd", "softmax_fwd", "interpolator_fwd", "registration_a
           "backward")
 #: Frame times of a query (NeuroMorph.match's default interp_times, configs/model/neuromorph.yaml).
 QUERY_TIMES = (0.0, 0.25, 0.5, 0.75, 1.0)
+#: Result files of the timing runs and of ``--parts``.
+DEFAULT_OUT = str(Path(__file__).parent / "results" / "neuromorph_speed.json")
+DEFAULT_PROFILE_OUT = str(Path(__file__).parent / "results" / "neuromorph_profile.json")
 #: glibc settings that keep freed large blocks instead of returning them to the OS (no page faults on reuse).
 GLIBC_NO_MMAP_ENV = {"MALLOC_MMAP_THRESHOLD_": str(2**34), "MALLOC_TRIM_THRESHOLD_": str(2**34)}
 
@@ -137,11 +154,12 @@ def _naive_geodesic(pi, dist_x, dist_y):
     return (pi @ dist_y @ pi.T - dist_x).square().mean()
 
 
-def _load_pair(cache: Path):
+def _load_pair(cache: Path, given: bool = False):
+    """``[(verts, faces, dist) of x, ... of y]``; normalized on load unless ``given`` (positions used as stored)."""
     data = np.load(cache)
     shapes = []
     for key in ("x", "y"):
-        s = make_shape(data[f"verts_{key}"], data[f"faces_{key}"], key)
+        s = make_shape(data[f"verts_{key}"], data[f"faces_{key}"], key, **({"normalization": None} if given else {}))
         shapes.append((s.verts, s.faces, torch.from_numpy(data[f"dist_{key}"]).float()))
     return shapes
 
@@ -154,7 +172,7 @@ def run_query(args) -> dict:
     """Seconds per query (no gradients) and peak memory of this process."""
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    (vx, fx, _), (vy, fy, _) = _load_pair(Path(args.cache))
+    (vx, fx, _), (vy, fy, _) = _load_pair(Path(args.cache), args.pair is not None)
     edges_x, edges_y = undirected_edges(fx), undirected_edges(fy)
     feat_net, interp = NeuroMorphFeatureNet(), NeuroMorphInterpolator()
     times = torch.tensor(QUERY_TIMES)
@@ -194,7 +212,7 @@ def run_single(args) -> dict:
     """One (variant, T) training configuration: returns timings and peak memory of this process."""
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    (vx, fx, dx), (vy, fy, dy) = _load_pair(Path(args.cache))
+    (vx, fx, dx), (vy, fy, dy) = _load_pair(Path(args.cache), args.pair is not None)
     naive = args.variant == "naive"
     edges_x, counts_x = undirected_edges(fx, return_counts=True)
     edges_y = undirected_edges(fy)
@@ -274,8 +292,180 @@ def run_single(args) -> dict:
     }
 
 
+#: Parts of a training step measured by ``--parts`` (in the order of the forward pass).
+PARTS = ("feature_nets", "soft_maps", "interpolator", "registration_arap", "geodesic", "adam_step")
+#: Rows of ``torch.profiler``'s operator table kept by ``--parts``.
+PROFILE_ROWS = 15
+#: Operator classes of the per-part profile: dense products (compute-bound, their floor is the GEMM rate) and
+#: row gathers / scatters (memory-bound); everything else (element-wise, reductions, SVDs, copies) is "other".
+GEMM_OPS = {"aten::mm", "aten::addmm", "aten::addmm_", "aten::bmm", "aten::baddbmm", "aten::vdot", "aten::dot"}
+GATHER_SCATTER_OPS = {"aten::index_select", "aten::index_add_", "aten::scatter_add_", "aten::scatter_reduce_",
+                      "aten::index", "aten::_index_put_impl_", "aten::gather", "aten::scatter_"}
+
+
+def _op_classes(fn) -> dict:
+    """Shares of ``fn()``'s self CPU time (``torch.profiler``) by operator class (gemm, gather_scatter, other) and
+    the floating-point operations of its dense products (``gemm_flops``, the profiler's count)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU], with_flops=True, record_shapes=True) as prof:
+        fn()
+    totals = {"gemm": 0.0, "gather_scatter": 0.0, "other": 0.0}
+    flops = 0
+    for event in prof.key_averages(group_by_input_shape=True):
+        kind = "gemm" if event.key in GEMM_OPS else "gather_scatter" if event.key in GATHER_SCATTER_OPS else "other"
+        totals[kind] += event.self_cpu_time_total
+        if event.key == "aten::addmm_":  # not counted by the profiler: 2 m k n from (self, mat1 (m, k), mat2 (k, n))
+            (m, k), n = event.input_shapes[1], event.input_shapes[2][1]
+            flops += 2 * m * k * n * event.count
+        elif kind == "gemm":
+            flops += event.flops
+    whole = sum(totals.values()) or 1.0
+    return {**{kind: value / whole for kind, value in totals.items()}, "gemm_flops": flops}
+
+
+def _cpu_median(fn, repeats: int) -> float:
+    """Median process-CPU seconds of ``fn()`` over ``repeats`` calls after one warm-up call."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        c0 = time.process_time()
+        fn()
+        times.append(time.process_time() - c0)
+    return statistics.median(times)
+
+
+def run_parts(args) -> dict:
+    """CPU seconds of each part of a ``fast`` training step, forward and backward in isolation (``--parts``)."""
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    (vx, fx, dx), (vy, fy, dy) = _load_pair(Path(args.cache), args.pair is not None)
+    edges_x, counts_x = undirected_edges(fx, return_counts=True)
+    edges_y = undirected_edges(fy)
+    weights = counts_x.float() * DEFAULT_ARAP_EDGE_WEIGHT_SCALE
+    feat_net, interp = NeuroMorphFeatureNet(), NeuroMorphInterpolator()
+    params = list(feat_net.parameters()) + list(interp.parameters())
+    optimizer = torch.optim.Adam(params, lr=1e-4)
+    times = interpolation_times(args.steps)
+    use_geo = args.steps == 0  # published schedule: geodesic weight 50 with T = 0, 0 from T = 1 on
+    gen = torch.Generator().manual_seed(0)
+
+    def upstream(t):
+        return torch.randn(t.shape, generator=gen, dtype=t.dtype)
+
+    def leaf(t):
+        return t.detach().clone().requires_grad_(True)
+
+    def losses(pi, pi_inv, target, frames):
+        reg = registration_loss(frames[-1], vy, pi, pi_inv, soft_target=target)
+        arap = arap_sequence_loss(torch.cat((vx.unsqueeze(0), frames)), edges_x, weights, mode="both-sides",
+                                  detach_rotations=True)
+        return reg + arap
+
+    def full_step():
+        optimizer.zero_grad(set_to_none=True)
+        feat_x, feat_y = feat_net(vx, fx, edges_x), feat_net(vy, fy, edges_y)
+        pi, pi_inv = softmax_soft_maps(feat_x, feat_y, sigma=DEFAULT_SIGMA, normalize=False)
+        target = pi @ vy
+        frames = interp.interpolate(vx, target, edges_x, times)
+        loss = losses(pi, pi_inv, target, frames)
+        if use_geo:
+            loss = loss + 50.0 * geodesic_distortion_loss(pi, dx, dy)
+        loss.backward()
+        optimizer.step()
+
+    # Fixed inputs and upstream gradients of every part, from one step's values.
+    with torch.no_grad():
+        feat_x0, feat_y0 = feat_net(vx, fx, edges_x), feat_net(vy, fy, edges_y)
+        pi0, pi_inv0 = softmax_soft_maps(feat_x0, feat_y0, sigma=DEFAULT_SIGMA, normalize=False)
+        target0 = pi0 @ vy
+        frames0 = interp.interpolate(vx, target0, edges_x, times)
+    grads = {"feat": (upstream(feat_x0), upstream(feat_y0)), "maps": (upstream(pi0), upstream(pi_inv0)),
+             "frames": upstream(frames0)}
+    parts = {
+        "feature_nets": (lambda: (feat_net(vx, fx, edges_x), feat_net(vy, fy, edges_y)), lambda out: grads["feat"]),
+        "soft_maps": (lambda: softmax_soft_maps(leaf(feat_x0), leaf(feat_y0), sigma=DEFAULT_SIGMA, normalize=False),
+                      lambda out: grads["maps"]),
+        "interpolator": (lambda: (interp.interpolate(vx, leaf(target0), edges_x, times),),
+                         lambda out: (grads["frames"],)),
+        "registration_arap": (lambda: (losses(leaf(pi0), leaf(pi_inv0), leaf(target0), leaf(frames0)),),
+                              lambda out: (torch.ones(()),)),
+    }
+    if use_geo:
+        parts["geodesic"] = (lambda: (50.0 * geodesic_distortion_loss(leaf(pi0), dx, dy),),
+                             lambda out: (torch.ones(()),))
+    forward_s, backward_s, op_shares = {}, {}, {}
+    for name, (forward, upstream_grads) in parts.items():
+        forward_s[name] = _cpu_median(forward, args.repeats)
+        state = {}
+
+        def prepare(forward=forward, state=state):
+            state["out"] = forward()
+
+        def backward(upstream_grads=upstream_grads, state=state):
+            out = state.pop("out")
+            torch.autograd.backward(out, upstream_grads(out))
+
+        samples = []
+        for i in range(args.repeats + 1):  # the first pair warms up
+            prepare()
+            c0 = time.process_time()
+            backward()
+            if i:
+                samples.append(time.process_time() - c0)
+        backward_s[name] = statistics.median(samples)
+
+        def forward_backward(forward=forward, upstream_grads=upstream_grads):
+            out = forward()
+            torch.autograd.backward(out, upstream_grads(out))
+
+        op_shares[name] = _op_classes(forward_backward)
+    for p in params:  # gradients for the optimizer step
+        p.grad = torch.randn(p.shape, generator=gen)
+    forward_s["adam_step"], backward_s["adam_step"] = _cpu_median(optimizer.step, args.repeats), 0.0
+    whole = _cpu_median(full_step, args.repeats)
+
+    # GEMM rate at the geodesic term's sizes: (n_x, n_y) x (n_y, n_y), as Pi D_y.
+    pi_mat, dist = pi0.contiguous(), dy.contiguous()
+    gemm_s = _cpu_median(lambda: pi_mat @ dist, args.repeats)
+    gemm_flops = 2.0 * pi_mat.shape[0] * pi_mat.shape[1] * dist.shape[1]
+
+    from torch.profiler import ProfilerActivity, profile
+
+    full_step()
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        full_step()
+    table = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
+    total_us = sum(e.self_cpu_time_total for e in table)
+    ops = [{"op": e.key, "self_cpu_ms": e.self_cpu_time_total / 1e3, "share": e.self_cpu_time_total / total_us,
+            "calls": e.count} for e in table[:PROFILE_ROWS]]
+    return {
+        "T": args.steps,
+        "geodesic_term": use_geo,
+        "part_cpu_seconds": {name: {"forward": forward_s[name], "backward": backward_s[name],
+                                    "total": forward_s[name] + backward_s[name]} for name in forward_s},
+        "part_op_class_shares": op_shares,
+        # the dense products of each part at the measured GEMM rate: the part's floor with its math unchanged
+        "part_gemm_seconds_at_gemm_rate": {name: shares["gemm_flops"] * gemm_s / gemm_flops
+                                           for name, shares in op_shares.items()},
+        "sum_of_parts_cpu_seconds": sum(forward_s.values()) + sum(backward_s.values()),
+        "whole_step_cpu_seconds": whole,
+        "gemm_cpu_seconds_pi_dist": gemm_s,
+        "gemm_gflops_per_second": gemm_flops / gemm_s / 1e9,
+        "profiler_total_self_cpu_ms": total_us / 1e3,
+        "profiler_top_ops": ops,
+        "load_average": os.getloadavg(),
+        "n_verts": [int(vx.shape[0]), int(vy.shape[0])],
+        "n_undirected_edges": [int(edges_x.shape[0]), int(edges_y.shape[0])],
+    }
+
+
 def _prepare(args) -> dict:
     """Build the two shapes and their geodesic matrices once; save them for the subprocesses."""
+    if args.pair is not None:
+        with np.load(args.pair) as data:
+            return {"kind": "given pair, positions as stored", "path": str(args.pair),
+                    "n_verts": [int(data["verts_x"].shape[0]), int(data["verts_y"].shape[0])]}
     root = args.faust_root or os.environ.get("SHAPECORR_FAUST_R")
     if root:
         source = {"kind": "FAUST_r", "root_from": "--faust-root" if args.faust_root else "$SHAPECORR_FAUST_R",
@@ -297,6 +487,8 @@ def _prepare(args) -> dict:
 def _subprocess(args, variant: str, steps: int, threads: int, repeats: int, malloc: str, mode: str) -> dict:
     cmd = [sys.executable, __file__, mode, "--variant", variant, "--steps", str(steps), "--threads", str(threads),
            "--repeats", str(repeats), "--warmup", str(args.warmup), "--cache", args.cache]
+    if args.pair is not None:
+        cmd += ["--pair", args.pair]
     env = dict(os.environ, **(GLIBC_NO_MMAP_ENV if malloc == "no-mmap" else {}))
     if variant == "baseline":
         env["PYTHONPATH"] = os.pathsep.join(filter(None, (args.baseline_src, env.get("PYTHONPATH"))))
@@ -342,6 +534,43 @@ def _summary(args, results, queries) -> dict:
     return summary
 
 
+def main_parts(args) -> None:
+    """``--parts``: one subprocess per (threads, T); writes ``--out`` (default neuromorph_profile.json)."""
+    source = _prepare(args)
+    results = []
+    for threads in args.threads:
+        for steps in args.steps:
+            env = dict(os.environ, OMP_NUM_THREADS=str(threads))
+            cmd = [sys.executable, __file__, "--single-parts", "--steps", str(steps), "--threads", str(threads),
+                   "--repeats", str(args.repeats), "--cache", args.cache]
+            if args.pair is not None:
+                cmd += ["--pair", args.pair]
+            res = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True, env=env)
+                             .stdout.strip().splitlines()[-1])
+            res["threads"] = threads
+            results.append(res)
+            shown = ", ".join(f"{k} {v['total']:.3f}" for k, v in res["part_cpu_seconds"].items())
+            print(f"threads={threads} T={steps}: {shown}; sum {res['sum_of_parts_cpu_seconds']:.3f} s, whole step "
+                  f"{res['whole_step_cpu_seconds']:.3f} s, GEMM {res['gemm_gflops_per_second']:.0f} GFLOP/s",
+                  flush=True)
+    out = Path(args.out if args.out != DEFAULT_OUT else DEFAULT_PROFILE_OUT)
+    report = {
+        "benchmark": "neuromorph_profile",
+        "command": " ".join([Path(sys.executable).name, *sys.argv]),
+        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "machine": {"cpu": bench_common.cpu_model(), "logical_cpus": os.cpu_count(),
+                    "load_average_end": os.getloadavg()},
+        "software": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__},
+        "data": source,
+        "protocol": {"repeats": args.repeats, "statistic": "median process CPU seconds (one warm-up)",
+                     "parts": list(PARTS)},
+        "results": results,
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(report, indent=2) + "\n")
+    print(f"wrote {out}")
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--threads", type=int, nargs="+", default=[2, 1], help="torch thread counts to run")
@@ -359,15 +588,24 @@ def main(argv=None) -> None:
                         help="repeats of the (slow) naive reference; its median gives the speed-up ratio")
     parser.add_argument("--queries", type=int, default=5, help="repeats of the query timing (0: skip)")
     parser.add_argument("--faust-root", default=None)
-    parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "neuromorph_speed.json"))
+    parser.add_argument("--out", default=DEFAULT_OUT)
     parser.add_argument("--cache", default="/tmp/shapecorr_neuromorph_speed.npz")
     parser.add_argument("--single", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--single-query", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--pair", default=None, help="npz of the pair (verts_x, faces_x, dist_x, ... y), used as given")
+    parser.add_argument("--parts", action="store_true", help="where a fast step's time goes, per part (see above)")
+    parser.add_argument("--single-parts", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--variant", default="fast", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    if args.single or args.single_query:
+    if args.pair is not None:
+        args.cache = args.pair
+    if args.single or args.single_query or args.single_parts:
         args.steps, args.threads = args.steps[0], args.threads[0]
-        print(json.dumps(run_query(args) if args.single_query else run_single(args)))
+        run = run_parts if args.single_parts else run_query if args.single_query else run_single
+        print(json.dumps(run(args)))
+        return
+    if args.parts:
+        main_parts(args)
         return
     variants = [v for v in args.variants if v != "baseline" or args.baseline_src]
 

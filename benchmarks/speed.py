@@ -2,6 +2,7 @@
 
     python benchmarks/speed.py [--golden DIR] [--cases all|NAME ...] [--devices cpu1 cpu2 cuda] [--repeats 3]
     python benchmarks/speed.py --devices cuda --repeats 3          # the CUDA column alone (skipped without CUDA)
+    python benchmarks/speed.py --cases neuromorph_train_t0 neuromorph_train_t7 --devices cpu1
 
 Inputs: the golden FAUST_r pair ``tr_reg_080 -> tr_reg_081`` (``--golden`` or ``$SHAPECORR_DEEP_SHELLS_GOLDEN``,
 default ``/work/shared/data/reference/deep_shells_golden``): meshes (5000 / 5001 vertices), 510 eigenpairs and SHOT
@@ -25,6 +26,13 @@ Cases (the units of the speed table of docs/speed.md):
   ``model=smooth_shells`` (the published isometric preset: rigid stage, 100 random-search proposals, 51 layers).
   The eigenbasis and SHOT come from the project's shape cache (filled before the timing if missing); the
   original has no figure on this CPU (its paper reports 116 s per query on a GPU machine).
+* ``neuromorph_train_t0`` / ``neuromorph_train_t7``: one NeuroMorph training step (``configs/model/neuromorph.yaml``,
+  published settings, seed-0 weights) on the golden pair remeshed to ~2000 vertices per shape
+  (:func:`neuromorph_inputs`), with T = 0 (geodesic weight 50) and T = 7 intermediate time steps (geodesic weight 0,
+  as the published schedule has it from T = 1 on): ``training_step`` + backward + Adam step. The remeshes
+  (``shapecorr.geometry.remeshing``) and their heat-method geodesic matrices are computed once per process before
+  the timing (or read from ``--neuromorph-inputs``, the file ``benchmarks/neuromorph_side_by_side.py`` shares with
+  the original code); only their sizes matter for the timing.
 
 Every (case, device) runs in a fresh Python process: ``--warmup`` untimed calls (default 1), then ``--repeats``
 timed calls (wall and process-CPU seconds; the median is reported). Peak memory: the child's resident set
@@ -60,8 +68,14 @@ TRAIN_SAMPLES = 2000
 #: Hamiltonian settings of the two cases: modes per axis K and farthest-point samples.
 HAMILTONIAN_SETTINGS = {"hamiltonian_published": {"n_modes": 8, "samples": 2000},
                         "hamiltonian_small": {"n_modes": 4, "samples": 1000}}
+#: NeuroMorph cases: intermediate time steps T and the geodesic weight the published schedule uses with that T
+#: (NeuroMorph code, SettingsFaust: lambda_geo 50 while T = 0, then 0; configs/model/neuromorph.yaml).
+NEUROMORPH_SETTINGS = {"neuromorph_train_t0": {"n_intermediate": 0, "lambda_geo": 50.0},
+                       "neuromorph_train_t7": {"n_intermediate": 7, "lambda_geo": 0.0}}
+#: NeuroMorph's working resolution (vertices per shape; the original trains on 2000-vertex FAUST_r remeshes).
+NEUROMORPH_VERTS = 2000
 CASES = ("deep_shells_train", "deep_shells_query", "gmsm_train", "gmsm_query", "hamiltonian_published",
-         "hamiltonian_small", "smooth_shells_query")
+         "hamiltonian_small", "smooth_shells_query", *NEUROMORPH_SETTINGS)
 #: The FAUST_r pair of ``smooth_shells_query`` (the same pair as the golden inputs).
 FAUST_R_PAIR = ("tr_reg_080", "tr_reg_081")
 DEVICES = ("cpu1", "cpu2", "cuda")
@@ -74,6 +88,8 @@ ORIGINAL_REFERENCE = {
     "gmsm_query": {"seconds": 2.98, "peak_memory_mb": None},
     "hamiltonian_published": {"seconds": 62.1, "peak_memory_mb": 3470.0},
     "hamiltonian_small": {"seconds": 1.42, "peak_memory_mb": None},
+    "neuromorph_train_t0": {"seconds": 5.0, "peak_memory_mb": None},
+    "neuromorph_train_t7": {"seconds": 16.6, "peak_memory_mb": None},
 }
 #: Figures of an original without a measurement on this CPU: recorded as notes, not as ratios.
 ORIGINAL_NOTES = {
@@ -82,7 +98,8 @@ ORIGINAL_NOTES = {
 }
 #: Per-unit targets of the speed issue: the original's seconds divided by shapecorr's.
 TARGET_RATIO = {"deep_shells_train": 10.0, "deep_shells_query": 6.0, "gmsm_train": 8.0, "gmsm_query": 8.0,
-                "hamiltonian_published": 5.0, "hamiltonian_small": 5.0}
+                "hamiltonian_published": 5.0, "hamiltonian_small": 5.0, "neuromorph_train_t0": 10.0,
+                "neuromorph_train_t7": 10.0}
 MIB = 2 ** 20
 
 
@@ -222,7 +239,69 @@ def _smooth_shells(device):
     return lambda: int(matcher.match(x, y).p2p.sum())
 
 
-def build_case(case: str, golden: Path, device):
+def neuromorph_inputs(golden: Path, path: Path | None = None) -> dict:
+    """The NeuroMorph pair: the golden meshes remeshed to ~:data:`NEUROMORPH_VERTS` vertices, with geodesics.
+
+    Parameters
+    ----------
+    golden : Path
+        The deep_shells_golden folder (its pair :data:`PAIR`, vertices already normalized to area 0.44).
+    path : Path, optional
+        An ``.npz`` of these arrays: read when it exists, else written after computing them.
+
+    Returns
+    -------
+    dict of numpy arrays
+        ``verts_x (n_x, 3)`` float32, ``faces_x (f_x, 3)`` int64, ``dist_x (n_x, n_x)`` float32 (heat-method
+        geodesics, symmetric, zero diagonal), the same for ``y``.
+    """
+    import numpy as np
+
+    if path is not None and Path(path).is_file():
+        with np.load(path) as stored:
+            return {key: stored[key] for key in stored.files}
+    from shapecorr.geometry.geodesics import geodesic_distances
+    from shapecorr.geometry.remeshing import remesh
+
+    inputs = np.load(golden / f"inputs_{PAIR}.npz")
+    arrays = {}
+    for side in "xy":
+        verts, faces = remesh(inputs[f"{side}_verts"].astype(np.float64), inputs[f"{side}_faces"], NEUROMORPH_VERTS)
+        arrays[f"verts_{side}"] = verts.astype(np.float32)
+        arrays[f"faces_{side}"] = faces.astype(np.int64)
+        arrays[f"dist_{side}"] = geodesic_distances(verts, faces, method="heat").astype(np.float32)
+    if path is not None:
+        np.savez(path, **arrays)
+    return arrays
+
+
+def _neuromorph(golden: Path, device, setting: dict, inputs_path: Path | None):
+    """One NeuroMorph training step (``training_step`` + backward + Adam) on the pair of :func:`neuromorph_inputs`."""
+    import torch
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from shapecorr.data.augmentation import AugmentedPair
+    from shapecorr.data.datasets import PairSample, ShapeSample
+    from shapecorr.data.shape import make_shape
+
+    arrays = neuromorph_inputs(golden, inputs_path)
+    # the vertices are already normalized (area 0.44): kept as they are, the same positions the original receives
+    samples = [ShapeSample(shape=make_shape(arrays[f"verts_{s}"], arrays[f"faces_{s}"], s, normalization=None),
+                           operators={}) for s in "xy"]
+    batch = AugmentedPair(pair=PairSample(*samples).to(device), dist_x=torch.from_numpy(arrays["dist_x"]),
+                          dist_y=torch.from_numpy(arrays["dist_y"]), remeshed_x=None, remeshed_y=None,
+                          rotation=torch.eye(3))
+    torch.manual_seed(0)
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        cfg = compose("train", overrides=["model=neuromorph", f"model.n_intermediate={setting['n_intermediate']}"])
+    model = instantiate(cfg.model, _convert_="object").to(device).train(True)
+    model.loss.set_weight(model.geo_term, setting["lambda_geo"])
+    optimizer = model.configure_optimizers()  # the published Adam 1e-4 (configs/model/optimizer/adam.yaml)
+    return _learned_unit(model, batch, True, optimizer)
+
+
+def build_case(case: str, golden: Path, device, neuromorph_inputs_path: Path | None = None):
     """The measured operation of ``case`` (a zero-argument callable), inputs loaded."""
     if case in ("deep_shells_train", "deep_shells_query"):
         return _deep_shells(golden, device, train=case.endswith("train"))
@@ -232,17 +311,22 @@ def build_case(case: str, golden: Path, device):
         return _hamiltonian(golden, device, HAMILTONIAN_SETTINGS[case])
     if case == "smooth_shells_query":
         return _smooth_shells(device)
+    if case in NEUROMORPH_SETTINGS:
+        return _neuromorph(golden, device, NEUROMORPH_SETTINGS[case], neuromorph_inputs_path)
     raise SystemExit(f"error: unknown case {case!r}; one of {CASES}")
 
 
-def run_child(case: str, golden: Path, device_name: str, threads: int, repeats: int, warmup: int = 1) -> dict:
+def run_child(case: str, golden: Path, device_name: str, threads: int, repeats: int, warmup: int = 1,
+              neuromorph_inputs_path: Path | None = None) -> dict:
+    import resource
+
     import torch
 
     torch.set_num_threads(threads)
     torch.manual_seed(0)
     device = torch.device(device_name)
     cuda = device.type == "cuda"
-    op = build_case(case, golden, device)
+    op = build_case(case, golden, device, neuromorph_inputs_path)
     cuda_base, baseline_kb, reset = bench_common.start_memory_span(device)
     walls, cpus, value = [], [], None
     for i in range(repeats + warmup):  # the first calls warm up (allocator, lazy initialization, kernels)
@@ -253,14 +337,14 @@ def run_child(case: str, golden: Path, device_name: str, threads: int, repeats: 
         if i >= warmup:
             walls.append(time.perf_counter() - wall)
             cpus.append(time.process_time() - cpu)
+    maxrss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # kB on Linux: the process maximum
     hwm = bench_common.status_kb("VmHWM") if reset else None
     if hwm is None:
-        import resource
-
-        hwm = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        hwm = maxrss
     out = {"case": case, "device": device_name, "threads": threads, "seconds": walls, "cpu_seconds": cpus,
            "seconds_median": statistics.median(walls), "cpu_seconds_median": statistics.median(cpus),
            "value": value, "peak_rss_mb": hwm / 1024, "baseline_rss_mb": (baseline_kb or 0) / 1024,
+           "process_max_rss_mb": maxrss / 1024,
            "peak_source": "VmHWM after clear_refs" if reset else "ru_maxrss (process maximum)"}
     if cuda:
         peak = torch.cuda.max_memory_allocated(device)
@@ -272,10 +356,20 @@ def run_child(case: str, golden: Path, device_name: str, threads: int, repeats: 
 # ----------------------------------------------------------------------------------------------------------
 # Parent: one fresh process per (case, device)
 # ----------------------------------------------------------------------------------------------------------
-def measure(case: str, golden: Path, device: str, repeats: int, timeout: float, warmup: int = 1) -> dict:
-    device_name, threads = ("cuda", 1) if device == "cuda" else ("cpu", int(device[3:]))
+def child_command(case: str, golden: Path, device_name: str, threads: int, repeats: int, warmup: int = 1,
+                  neuromorph_inputs_path: Path | None = None) -> list[str]:
+    """Command line of one measuring child process (also run by ``benchmarks/neuromorph_side_by_side.py``)."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", case, "--golden", str(golden),
            "--device", device_name, "--threads", str(threads), "--repeats", str(repeats), "--warmup", str(warmup)]
+    if neuromorph_inputs_path is not None:
+        cmd += ["--neuromorph-inputs", str(neuromorph_inputs_path)]
+    return cmd
+
+
+def measure(case: str, golden: Path, device: str, repeats: int, timeout: float, warmup: int = 1,
+            neuromorph_inputs_path: Path | None = None) -> dict:
+    device_name, threads = ("cuda", 1) if device == "cuda" else ("cpu", int(device[3:]))
+    cmd = child_command(case, golden, device_name, threads, repeats, warmup, neuromorph_inputs_path)
     env = dict(os.environ, OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
@@ -321,6 +415,8 @@ def main(argv=None) -> int:
     parser.add_argument("--warmup", type=int, default=1, help="untimed calls before the timed ones (default 1)")
     parser.add_argument("--timeout", type=float, default=1800.0, help="seconds per (case, device) process")
     parser.add_argument("--out", type=Path, default=RESULT)
+    parser.add_argument("--neuromorph-inputs", type=Path, default=None,
+                        help="npz of the NeuroMorph pair (read if present, else computed and written there)")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--device", default="cpu", help=argparse.SUPPRESS)
     parser.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)
@@ -330,7 +426,8 @@ def main(argv=None) -> int:
         print(f"error: {golden}: no inputs_{PAIR}.npz (set --golden or $SHAPECORR_DEEP_SHELLS_GOLDEN)", file=sys.stderr)
         return 2
     if args.child:
-        print(json.dumps(run_child(args.child, golden, args.device, args.threads, args.repeats, args.warmup)))
+        print(json.dumps(run_child(args.child, golden, args.device, args.threads, args.repeats, args.warmup,
+                                   args.neuromorph_inputs)))
         return 0
     cases = list(CASES) if args.cases == ["all"] else args.cases
     unknown = sorted(set(cases) - set(CASES)) + sorted(set(args.devices) - set(DEVICES))
@@ -345,7 +442,7 @@ def main(argv=None) -> int:
     results = []
     for case in cases:
         for device in devices:
-            result = measure(case, golden, device, args.repeats, args.timeout, args.warmup)
+            result = measure(case, golden, device, args.repeats, args.timeout, args.warmup, args.neuromorph_inputs)
             results.append(result)
             shown = result.get("error") or (f"cpu {result['cpu_seconds_median']:.2f} s, wall "
                                             f"{result['seconds_median']:.2f} s, peak {result['peak_rss_mb']:.0f} MB")
@@ -358,7 +455,8 @@ def main(argv=None) -> int:
         "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "inputs": {"golden": PAIR, "train_samples": TRAIN_SAMPLES, "hamiltonian": HAMILTONIAN_SETTINGS,
-                   "faust_r_pair": list(FAUST_R_PAIR), "faust_r": os.environ.get("SHAPECORR_FAUST_R")},
+                   "faust_r_pair": list(FAUST_R_PAIR), "faust_r": os.environ.get("SHAPECORR_FAUST_R"),
+                   "neuromorph": {"verts": NEUROMORPH_VERTS, **NEUROMORPH_SETTINGS}},
         "repeats": args.repeats,
         "machine": bench_common.machine_info(),
         "original_reference": ORIGINAL_REFERENCE,
