@@ -70,6 +70,7 @@ from shapecorr.geometry.normals import vertex_normals
 from shapecorr.geometry.sampling import farthest_point_sampling
 from shapecorr.geometry.shells import sigmoid_shell_weights, smooth_shell
 from shapecorr.geometry.spectral_shape import SpectralShape
+from shapecorr.matching.finiteness import all_finite
 from shapecorr.matching.least_squares import DEFAULT_RIDGE, normal_equations, solve_normal_equations
 from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
 from shapecorr.matching.sinkhorn import (
@@ -523,13 +524,16 @@ class _PairNormalEquations:
     cheaper. The deformation part of the right-hand side (3 columns, shells change with ``k``) is rebuilt.
     Everything is computed in float64 (buffers sized for the largest ``k``); the result equals
     :func:`deformation_from_pairs` up to rounding (~1e-14 relative; in the float32 the solution is used in,
-    a few entries differ by one unit in the last place). The bases are kept in their own dtype and the blocks
-    a product needs are converted when used (exact), so float32 bases are not copied to float64 whole
-    (1.2 GB for two 150k-vertex shapes with 500 eigenfunctions).
+    a few entries differ by one unit in the last place). A basis of at most ``REFINE_ROW_BLOCK`` rows is
+    converted to float64 once (20 MB for 5000 vertices and 500 eigenfunctions; every level's products would
+    convert all of its rows anyway). Larger bases are kept in their own dtype and the blocks a product needs
+    are converted when used (exact), so float32 bases are not copied to float64 whole (1.2 GB for two
+    150k-vertex shapes with 500 eigenfunctions).
     """
 
     def __init__(self, phi_x: torch.Tensor, phi_y: torch.Tensor):
-        self.phi_x, self.phi_y = phi_x, phi_y  # (n_x, K), (n_y, K) float (float32 or float64)
+        # (n_x, K), (n_y, K) float: float64 up to one row block, else their own dtype (float32 or float64)
+        self.phi_x, self.phi_y = (p.to(torch.float64) if p.shape[0] <= REFINE_ROW_BLOCK else p for p in (phi_x, phi_y))
         n, kmax = phi_x.shape
         self.k = 0
         self.map_x_to_y = self.map_y_to_x = self.weights = None
@@ -646,7 +650,7 @@ def _check_samples(shape: SpectralShape, samples: torch.Tensor, feats: torch.Ten
         raise ConfigError(
             f"deep shells: feat_{side} must have one row per sample ({samples.shape[0]}), got {tuple(feats.shape)}"
         )
-    if not torch.isfinite(feats).all():
+    if not all_finite(feats):
         raise NumericalError(f"deep shells: feat_{side} ({shape.name}) contains NaN or Inf")
 
 
@@ -791,7 +795,8 @@ def product_embedding_maps(
     with torch.no_grad():
         fmap, tau = fmap.detach().to(shape_x.evecs.dtype), tau.detach().to(shape_x.evecs.dtype)
         emb_x, emb_y, deformed = _full_embedding(shape_x, shape_y, k, fmap, tau, fac_spec, fac_norm, config)
-        map_x_to_y, map_y_to_x = bidirectional_nearest_neighbors(emb_x, emb_y, backend=config.nn_backend)
+        map_x_to_y, map_y_to_x = bidirectional_nearest_neighbors(emb_x, emb_y, backend=config.nn_backend,
+                                                                workers=torch.get_num_threads())
     return DeepShellsMatch(map_x_to_y=map_x_to_y, map_y_to_x=map_y_to_x, fmap=fmap, tau=tau, deformed_x=deformed)
 
 
@@ -838,7 +843,8 @@ def refine_deep_shells(
             fmap, tau = fmap.to(shape_x.evecs.dtype), tau.to(shape_x.evecs.dtype)
             emb_x, emb_y, deformed = _full_embedding(shape_x, shape_y, k, fmap, tau, config.refine_fac_spec,
                                                      config.refine_fac_norm, config, shell_x, shell_y)
-            map_x_to_y, map_y_to_x = bidirectional_nearest_neighbors(emb_x, emb_y, backend=config.nn_backend)
+            map_x_to_y, map_y_to_x = bidirectional_nearest_neighbors(emb_x, emb_y, backend=config.nn_backend,
+                                                                workers=torch.get_num_threads())
     return DeepShellsMatch(map_x_to_y=map_x_to_y, map_y_to_x=map_y_to_x, fmap=fmap, tau=tau, deformed_x=deformed)
 
 
@@ -892,7 +898,7 @@ def deep_shells_query(
             samples_x = torch.arange(n_x, device=feat_x.device)
             samples_y = torch.arange(n_y, device=feat_y.device)
         fx, fy = feat_x[samples_x], feat_y[samples_y]
-        if not (torch.isfinite(fx).all() and torch.isfinite(fy).all()):
+        if not all_finite(fx, fy):
             raise NumericalError("deep_shells_query: the features contain NaN or Inf")
         incl = config.sigmoid_inclusive
         phi_x, phi_y = shape_x.evecs[samples_x, :k], shape_y.evecs[samples_y, :k]

@@ -9,6 +9,8 @@ Backends:
 
 - ``"kdtree"``: scipy's ``cKDTree`` in float64 (exact), one tree per side; with ``workers`` other than 1
   the two directions (tree builds included) run in two threads, each querying with half of the workers.
+  scipy rejects non-finite points itself (one pass over each side), which is this backend's finiteness
+  check: it raises :class:`~shapecorr.errors.NumericalError` without a second pass in torch.
   The embeddings of the shell refinements are intrinsically 2-D surfaces, so the trees prune well even in
   hundreds of dimensions: faster than blocked brute force on CPUs up to the 505-D top level (measured).
 - ``"brute"``: blocked exact search with torch on the tensors' device (CPU or GPU): distance blocks from one
@@ -30,6 +32,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from shapecorr.errors import ConfigError, NumericalError
+from shapecorr.matching.finiteness import all_finite
 
 #: Rows of X per distance block of the brute-force search (block of ``block_size x m`` entries).
 DEFAULT_BLOCK_SIZE = 2048
@@ -43,12 +46,15 @@ BATCH_BLOCK_ENTRIES = 1 << 24
 NN_BACKENDS = ("auto", "kdtree", "brute")
 
 
-def _check(emb_x: torch.Tensor, emb_y: torch.Tensor) -> None:
+def _check_shapes(emb_x: torch.Tensor, emb_y: torch.Tensor) -> None:
     if emb_x.dim() != 2 or emb_y.dim() != 2 or emb_x.shape[1] != emb_y.shape[1]:
         raise ConfigError(f"nearest neighbours: need (n, d) and (m, d), got {tuple(emb_x.shape)}, {tuple(emb_y.shape)}")
     if emb_x.shape[0] == 0 or emb_y.shape[0] == 0:
         raise ConfigError("nearest neighbours: empty point set")
-    if not (torch.isfinite(emb_x).all() and torch.isfinite(emb_y).all()):
+
+
+def _check_finite(*embs: torch.Tensor) -> None:
+    if not all_finite(*embs):
         raise NumericalError("nearest neighbours: the embedding contains NaN or Inf")
 
 
@@ -61,15 +67,21 @@ def _kdtree(emb_x: torch.Tensor, emb_y: torch.Tensor, workers: int) -> tuple[tor
     x = emb_x.detach().to("cpu", torch.float64).numpy()
     y = emb_y.detach().to("cpu", torch.float64).numpy()
     threads = _available_cores() if workers == -1 else max(1, int(workers))
-    if threads >= 2:
-        # scipy releases the GIL while building and querying, so the two directions (tree build included,
-        # which `workers` does not parallelize) run concurrently, each with half of the query threads.
-        with ThreadPoolExecutor(max_workers=2) as pool:
-            job = pool.submit(_nearest, x, y, threads - threads // 2)  # for each point of Y, one of X
-            nn_y = _nearest(y, x, threads // 2)  # for each point of X, the nearest of Y
-            nn_x = job.result()
-    else:
-        nn_y, nn_x = _nearest(y, x, 1), _nearest(x, y, 1)
+    try:
+        if threads >= 2:
+            # scipy releases the GIL while building and querying, so the two directions (tree build included,
+            # which `workers` does not parallelize) run concurrently, each with half of the query threads.
+            with ThreadPoolExecutor(max_workers=2) as pool:
+                job = pool.submit(_nearest, x, y, threads - threads // 2)  # for each point of Y, one of X
+                nn_y = _nearest(y, x, threads // 2)  # for each point of X, the nearest of Y
+                nn_x = job.result()
+        else:
+            nn_y, nn_x = _nearest(y, x, 1), _nearest(x, y, 1)
+    except ValueError:
+        # scipy's finiteness check of the tree's points and of the queries
+        if not (np.isfinite(x).all() and np.isfinite(y).all()):
+            raise NumericalError("nearest neighbours: the embedding contains NaN or Inf") from None
+        raise
     device = emb_x.device
     return torch.from_numpy(nn_y).to(device), torch.from_numpy(nn_x).to(device)
 
@@ -135,11 +147,12 @@ def bidirectional_nearest_neighbors(
     """
     if backend not in NN_BACKENDS:
         raise ConfigError(f"nearest-neighbour backend must be one of {NN_BACKENDS}, got {backend!r}")
-    _check(emb_x, emb_y)
+    _check_shapes(emb_x, emb_y)
     if backend == "auto":
         backend = "brute" if emb_x.device.type == "cuda" else "kdtree"
     if backend == "kdtree":
         return _kdtree(emb_x, emb_y, workers)
+    _check_finite(emb_x, emb_y)
     return _brute(emb_x, emb_y, int(block_size), exact)
 
 
