@@ -739,8 +739,48 @@ def deep_shells_layer(
 # test time
 
 
-def _full_embedding(shape_x, shape_y, k, fmap, tau, fac_spec, fac_norm, config, shell_x=None, shell_y=None):
-    """Full-resolution product embedding for shell size ``k`` and a fitted ``(C, tau)``."""
+class _EmbeddingBuffers:
+    """float64 storage of the full-resolution embeddings of every refinement level (the k-d trees' input).
+
+    Each level's embeddings are formed in the bases' dtype, with the values of :func:`_product_embedding`
+    (the same products and scalings), and converted once into these buffers, sized for the largest level; the
+    nearest-neighbour search reads them without a copy. A level allocates neither its ``(n, 3 + k + 3)``
+    embeddings nor their float64 copies.
+    """
+
+    def __init__(self, n_x: int, n_y: int, k_max: int, like: torch.Tensor):
+        width = k_max + 6
+        self.x = like.new_empty(n_x * width, dtype=torch.float64)
+        self.y = like.new_empty(n_y * width, dtype=torch.float64)
+        self.spec = like.new_empty(max(n_x, n_y) * k_max)  # one spectral block at a time, bases' dtype
+
+    def fill(self, deformed_x, phi_x, fmap, normals_x, shell_y, phi_y, normals_y, fac_s, fac_n):
+        """``(emb_x (n_x, k + 6), emb_y (n_y, k + 6))`` float64 views of the buffers."""
+        k = phi_x.shape[1]
+        out = []
+        for buf, first, spec, normals in ((self.x, deformed_x, (phi_x, fmap), normals_x),
+                                          (self.y, shell_y, (phi_y,), normals_y)):
+            n = first.shape[0]
+            emb = buf[: n * (k + 6)].view(n, k + 6)
+            block = self.spec[: n * k].view(n, k)
+            if len(spec) == 2:
+                torch.mm(*spec, out=block)
+                block.mul_(fac_s)
+            else:
+                torch.mul(spec[0], fac_s, out=block)
+            emb[:, :3].copy_(first)
+            emb[:, 3:3 + k].copy_(block)
+            emb[:, 3 + k:].copy_(fac_n * normals)
+            out.append(emb)
+        return out[0], out[1]
+
+
+def _full_embedding(shape_x, shape_y, k, fmap, tau, fac_spec, fac_norm, config, shell_x=None, shell_y=None,
+                    buffers=None):
+    """Full-resolution product embedding for shell size ``k`` and a fitted ``(C, tau)``.
+
+    With ``buffers`` (:class:`_EmbeddingBuffers`), float64 views of them holding the same values.
+    """
     incl = config.sigmoid_inclusive
     if shell_x is None:
         shell_x = _shell(shape_x, k, config.smooth_x, incl)
@@ -751,7 +791,10 @@ def _full_embedding(shape_x, shape_y, k, fmap, tau, fac_spec, fac_norm, config, 
     normals_x = vertex_normals(deformed, shape_x.faces)
     normals_y = vertex_normals(shell_y, shape_y.faces)
     fac_s, fac_n = _embedding_scales(shell_y, phi_y, normals_y, fac_spec, fac_norm)
-    emb_x, emb_y = _product_embedding(deformed, phi_x @ fmap, normals_x, shell_y, phi_y, normals_y, fac_s, fac_n)
+    if buffers is None:
+        emb_x, emb_y = _product_embedding(deformed, phi_x @ fmap, normals_x, shell_y, phi_y, normals_y, fac_s, fac_n)
+    else:
+        emb_x, emb_y = buffers.fill(deformed, phi_x, fmap, normals_x, shell_y, phi_y, normals_y, fac_s, fac_n)
     return emb_x, emb_y, deformed
 
 
@@ -836,13 +879,14 @@ def refine_deep_shells(
     with torch.no_grad():
         # normal equations carried from level to level (float64 products of the bases' blocks)
         system = _PairNormalEquations(shape_x.evecs[:, : max(ks)], shape_y.evecs[:, : max(ks)])
+        buffers = _EmbeddingBuffers(shape_x.n_verts, shape_y.n_verts, max(ks), shape_x.evecs)
         for k in ks:
             shell_x = _shell(shape_x, k, config.smooth_x, incl)
             shell_y = _shell(shape_y, k, "sigmoid", incl)
             fmap, tau = system.solve(k, shell_x, shell_y, map_x_to_y, map_y_to_x, config.ridge)
             fmap, tau = fmap.to(shape_x.evecs.dtype), tau.to(shape_x.evecs.dtype)
             emb_x, emb_y, deformed = _full_embedding(shape_x, shape_y, k, fmap, tau, config.refine_fac_spec,
-                                                     config.refine_fac_norm, config, shell_x, shell_y)
+                                                     config.refine_fac_norm, config, shell_x, shell_y, buffers)
             map_x_to_y, map_y_to_x = bidirectional_nearest_neighbors(emb_x, emb_y, backend=config.nn_backend,
                                                                 workers=torch.get_num_threads())
     return DeepShellsMatch(map_x_to_y=map_x_to_y, map_y_to_x=map_y_to_x, fmap=fmap, tau=tau, deformed_x=deformed)
