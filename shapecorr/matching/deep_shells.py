@@ -70,7 +70,7 @@ from shapecorr.geometry.normals import vertex_normals
 from shapecorr.geometry.sampling import farthest_point_sampling
 from shapecorr.geometry.shells import sigmoid_shell_weights, smooth_shell
 from shapecorr.geometry.spectral_shape import SpectralShape
-from shapecorr.matching.finiteness import all_finite
+from shapecorr.geometry.finiteness import all_finite
 from shapecorr.matching.least_squares import DEFAULT_RIDGE, normal_equations, solve_normal_equations
 from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
 from shapecorr.matching.sinkhorn import (

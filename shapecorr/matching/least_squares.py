@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 
 from shapecorr.errors import ConfigError, NumericalError
-from shapecorr.matching.finiteness import all_finite
+from shapecorr.geometry.finiteness import all_finite
 
 #: Ridge added to the normal equations, relative to the mean diagonal of the Gram matrix. Tiny on purpose:
 #: float64 Gram matrices are accurate to ~1e-16 relative, so 1e-8 only matters where the problem is

@@ -32,7 +32,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from shapecorr.errors import ConfigError, NumericalError
-from shapecorr.matching.finiteness import all_finite
+from shapecorr.geometry.finiteness import all_finite
 
 #: Rows of X per distance block of the brute-force search (block of ``block_size x m`` entries).
 DEFAULT_BLOCK_SIZE = 2048

@@ -42,6 +42,7 @@ import torch
 from torch import nn
 
 from shapecorr.errors import ConfigError, NumericalError
+from shapecorr.geometry.finiteness import all_finite
 from shapecorr.nn.backbone import Backbone
 
 #: Published DiffusionNet setting of G-MSM (Eisenberger et al., CVPR 2023, with the DiffusionNet defaults of
@@ -374,7 +375,7 @@ class DiffusionNetBackbone(Backbone):
         grad_x = grads["grad_x"].to(device=device, dtype=dtype)
         grad_y = grads["grad_y"].to(device=device, dtype=dtype)
         out = self.net(self._input(sample, dtype, device), evals, evecs, mass, grad_x, grad_y)
-        if not torch.isfinite(out).all():
+        if not all_finite(out):
             raise NumericalError("DiffusionNet produced NaN/Inf features (check the operators and the input)")
         return out if rows is None else out[rows]
 
