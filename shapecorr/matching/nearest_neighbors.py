@@ -38,6 +38,12 @@ from shapecorr.geometry.finiteness import all_finite
 DEFAULT_BLOCK_SIZE = 2048
 #: Threads used by the kd-tree queries (-1: all cores).
 DEFAULT_WORKERS = -1
+#: k-d tree of :func:`bidirectional_nearest_neighbors`: points per leaf and median (True) or sliding-midpoint
+#: (False) splits. Measured on the 41 levels of a Deep Shells query (5k vertices, 12 to 505 dimensions, one
+#: thread, builds and queries of both directions): 1.36 s with 8 / sliding midpoint, 1.50 s with scipy's
+#: defaults (16 / median), 1.40-1.69 s for 4-24 points per leaf either way. The search is exact either way.
+KDTREE_LEAFSIZE = 8
+KDTREE_BALANCED = False
 
 #: Distances per block of the batched brute-force search (memory ~ rows x batch x points).
 BATCH_BLOCK_ENTRIES = 1 << 24
@@ -59,7 +65,8 @@ def _check_finite(*embs: torch.Tensor) -> None:
 
 
 def _nearest(points: np.ndarray, queries: np.ndarray, workers: int) -> np.ndarray:
-    _, nn = cKDTree(points).query(queries, k=1, workers=workers)
+    tree = cKDTree(points, leafsize=KDTREE_LEAFSIZE, balanced_tree=KDTREE_BALANCED)
+    _, nn = tree.query(queries, k=1, workers=workers)
     return np.asarray(nn, dtype=np.int64)
 
 
