@@ -192,10 +192,15 @@ def test_nearest_neighbours_errors():
     x = torch.zeros(4, 3)
     with pytest.raises(ConfigError):
         bidirectional_nearest_neighbors(x, x, backend="ball")
-    bad = x.clone()
-    bad[0, 0] = float("inf")
-    with pytest.raises(NumericalError):
-        bidirectional_nearest_neighbors(bad, x)
+    # every backend and thread count, NaN or Inf on either side (the k-d tree relies on scipy's own check)
+    y = torch.randn(6, 3)
+    for value in (float("inf"), float("nan")):
+        bad = x.clone()
+        bad[2, 1] = value
+        for kwargs in (dict(backend="kdtree"), dict(backend="kdtree", workers=2), dict(backend="brute")):
+            for pair in ((bad, y), (y, bad)):
+                with pytest.raises(NumericalError, match="NaN or Inf"):
+                    bidirectional_nearest_neighbors(*pair, **kwargs)
 
 
 # --------------------------------------------------------------------------------------------------------
