@@ -756,23 +756,20 @@ class _EmbeddingBuffers:
 
     def fill(self, deformed_x, phi_x, fmap, normals_x, shell_y, phi_y, normals_y, fac_s, fac_n):
         """``(emb_x (n_x, k + 6), emb_y (n_y, k + 6))`` float64 views of the buffers."""
-        k = phi_x.shape[1]
-        out = []
-        for buf, first, spec, normals in ((self.x, deformed_x, (phi_x, fmap), normals_x),
-                                          (self.y, shell_y, (phi_y,), normals_y)):
-            n = first.shape[0]
-            emb = buf[: n * (k + 6)].view(n, k + 6)
-            block = self.spec[: n * k].view(n, k)
-            if len(spec) == 2:
-                torch.mm(*spec, out=block)
-                block.mul_(fac_s)
-            else:
-                torch.mul(spec[0], fac_s, out=block)
-            emb[:, :3].copy_(first)
-            emb[:, 3:3 + k].copy_(block)
-            emb[:, 3 + k:].copy_(fac_n * normals)
-            out.append(emb)
-        return out[0], out[1]
+        (n_x, k), n_y = phi_x.shape, phi_y.shape[0]
+        spec_x = torch.mm(phi_x, fmap, out=self.spec[: n_x * k].view(n_x, k)).mul_(fac_s)  # fac_s * (Phi_X C)
+        emb_x = self._write(self.x, deformed_x, spec_x, fac_n * normals_x)  # before spec_y reuses the storage
+        spec_y = torch.mul(phi_y, fac_s, out=self.spec[: n_y * k].view(n_y, k))
+        return emb_x, self._write(self.y, shell_y, spec_y, fac_n * normals_y)
+
+    @staticmethod
+    def _write(buf, first, spec, last):
+        n, k = spec.shape
+        emb = buf[: n * (k + 6)].view(n, k + 6)
+        emb[:, :3].copy_(first)
+        emb[:, 3:3 + k].copy_(spec)
+        emb[:, 3 + k:].copy_(last)
+        return emb
 
 
 def _full_embedding(shape_x, shape_y, k, fmap, tau, fac_spec, fac_norm, config, shell_x=None, shell_y=None,

@@ -40,8 +40,8 @@ DEFAULT_BLOCK_SIZE = 2048
 DEFAULT_WORKERS = -1
 #: k-d tree of :func:`bidirectional_nearest_neighbors`: points per leaf and median (True) or sliding-midpoint
 #: (False) splits. Measured on the 41 levels of a Deep Shells query (5k vertices, 12 to 505 dimensions, one
-#: thread, builds and queries of both directions): 1.36 s with 8 / sliding midpoint, 1.50 s with scipy's
-#: defaults (16 / median), 1.40-1.69 s for 4-24 points per leaf either way. The search is exact either way.
+#: thread, builds and queries of both directions, medians of 3): 1.36 s with 8 / sliding midpoint, 1.50 s with
+#: scipy's defaults (16 / median), 1.37-1.69 s for the other settings of 4-24 points per leaf. Exact either way.
 KDTREE_LEAFSIZE = 8
 KDTREE_BALANCED = False
 
@@ -151,6 +151,13 @@ def bidirectional_nearest_neighbors(
         For each point of X, the index of its nearest point of Y (a point-to-point map X -> Y).
     nn_x_of_y : (m,) int64
         For each point of Y, the index of its nearest point of X.
+
+    Raises
+    ------
+    ConfigError
+        On an unknown backend, mismatched widths or an empty point set.
+    NumericalError
+        If either embedding contains NaN or Inf.
     """
     if backend not in NN_BACKENDS:
         raise ConfigError(f"nearest-neighbour backend must be one of {NN_BACKENDS}, got {backend!r}")
