@@ -244,7 +244,8 @@ def main(argv=None) -> int:
                 commands = {
                     "original": [*me, "--original-child", case, "--inputs", str(inputs), "--repeats",
                                  str(args.repeats)],
-                    "shapecorr": speed.child_command(case, golden, "cpu", 1, args.repeats, neuromorph_inputs_path=inputs),
+                    "shapecorr": speed.child_command(case, golden, "cpu", 1, args.repeats,
+                                                     neuromorph_inputs_path=inputs),
                 }
                 if args.no_mmap_variant:
                     commands["shapecorr_no_mmap"] = commands["shapecorr"]

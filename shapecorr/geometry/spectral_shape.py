@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from shapecorr.errors import InvalidMeshError
+from shapecorr.geometry.finiteness import all_finite
 from shapecorr.geometry.shells import spectral_coefficients
 
 
@@ -87,7 +88,7 @@ def make_spectral_shape(
         raise InvalidMeshError(f"{name}: operators do not match the {n} vertices: evecs {tuple(evecs.shape)}, "
                                f"mass {tuple(mass.shape)}")
     for label, t in (("vertices", verts), ("eigenvectors", evecs), ("mass", mass)):
-        if not torch.isfinite(t).all():
+        if not all_finite(t):
             raise InvalidMeshError(f"{name}: the {label} contain NaN or Inf")
     coeffs = spectral_coefficients(evecs, mass, verts)
     return SpectralShape(verts=verts, faces=faces, evecs=evecs, mass=mass, coeffs=coeffs, name=name)

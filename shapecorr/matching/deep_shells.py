@@ -70,6 +70,7 @@ from shapecorr.geometry.normals import vertex_normals
 from shapecorr.geometry.sampling import farthest_point_sampling
 from shapecorr.geometry.shells import sigmoid_shell_weights, smooth_shell
 from shapecorr.geometry.spectral_shape import SpectralShape
+from shapecorr.geometry.finiteness import all_finite
 from shapecorr.matching.least_squares import DEFAULT_RIDGE, normal_equations, solve_normal_equations
 from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
 from shapecorr.matching.sinkhorn import (
@@ -523,13 +524,16 @@ class _PairNormalEquations:
     cheaper. The deformation part of the right-hand side (3 columns, shells change with ``k``) is rebuilt.
     Everything is computed in float64 (buffers sized for the largest ``k``); the result equals
     :func:`deformation_from_pairs` up to rounding (~1e-14 relative; in the float32 the solution is used in,
-    a few entries differ by one unit in the last place). The bases are kept in their own dtype and the blocks
-    a product needs are converted when used (exact), so float32 bases are not copied to float64 whole
-    (1.2 GB for two 150k-vertex shapes with 500 eigenfunctions).
+    a few entries differ by one unit in the last place). A basis of at most ``REFINE_ROW_BLOCK`` rows is
+    converted to float64 once (20 MB for 5000 vertices and 500 eigenfunctions; every level's products would
+    convert all of its rows anyway). Larger bases are kept in their own dtype and the blocks a product needs
+    are converted when used (exact), so float32 bases are not copied to float64 whole (1.2 GB for two
+    150k-vertex shapes with 500 eigenfunctions).
     """
 
     def __init__(self, phi_x: torch.Tensor, phi_y: torch.Tensor):
-        self.phi_x, self.phi_y = phi_x, phi_y  # (n_x, K), (n_y, K) float (float32 or float64)
+        # (n_x, K), (n_y, K) float: float64 up to one row block, else their own dtype (float32 or float64)
+        self.phi_x, self.phi_y = (p.to(torch.float64) if p.shape[0] <= REFINE_ROW_BLOCK else p for p in (phi_x, phi_y))
         n, kmax = phi_x.shape
         self.k = 0
         self.map_x_to_y = self.map_y_to_x = self.weights = None
@@ -646,7 +650,7 @@ def _check_samples(shape: SpectralShape, samples: torch.Tensor, feats: torch.Ten
         raise ConfigError(
             f"deep shells: feat_{side} must have one row per sample ({samples.shape[0]}), got {tuple(feats.shape)}"
         )
-    if not torch.isfinite(feats).all():
+    if not all_finite(feats):
         raise NumericalError(f"deep shells: feat_{side} ({shape.name}) contains NaN or Inf")
 
 
@@ -735,8 +739,45 @@ def deep_shells_layer(
 # test time
 
 
-def _full_embedding(shape_x, shape_y, k, fmap, tau, fac_spec, fac_norm, config, shell_x=None, shell_y=None):
-    """Full-resolution product embedding for shell size ``k`` and a fitted ``(C, tau)``."""
+class _EmbeddingBuffers:
+    """float64 storage of the full-resolution embeddings of every refinement level (the k-d trees' input).
+
+    Each level's embeddings are formed in the bases' dtype, with the values of :func:`_product_embedding`
+    (the same products and scalings), and converted once into these buffers, sized for the largest level; the
+    nearest-neighbour search reads them without a copy. A level allocates neither its ``(n, 3 + k + 3)``
+    embeddings nor their float64 copies.
+    """
+
+    def __init__(self, n_x: int, n_y: int, k_max: int, like: torch.Tensor):
+        width = k_max + 6
+        self.x = like.new_empty(n_x * width, dtype=torch.float64)
+        self.y = like.new_empty(n_y * width, dtype=torch.float64)
+        self.spec = like.new_empty(max(n_x, n_y) * k_max)  # one spectral block at a time, bases' dtype
+
+    def fill(self, deformed_x, phi_x, fmap, normals_x, shell_y, phi_y, normals_y, fac_s, fac_n):
+        """``(emb_x (n_x, k + 6), emb_y (n_y, k + 6))`` float64 views of the buffers."""
+        (n_x, k), n_y = phi_x.shape, phi_y.shape[0]
+        spec_x = torch.mm(phi_x, fmap, out=self.spec[: n_x * k].view(n_x, k)).mul_(fac_s)  # fac_s * (Phi_X C)
+        emb_x = self._write(self.x, deformed_x, spec_x, fac_n * normals_x)  # before spec_y reuses the storage
+        spec_y = torch.mul(phi_y, fac_s, out=self.spec[: n_y * k].view(n_y, k))
+        return emb_x, self._write(self.y, shell_y, spec_y, fac_n * normals_y)
+
+    @staticmethod
+    def _write(buf, first, spec, last):
+        n, k = spec.shape
+        emb = buf[: n * (k + 6)].view(n, k + 6)
+        emb[:, :3].copy_(first)
+        emb[:, 3:3 + k].copy_(spec)
+        emb[:, 3 + k:].copy_(last)
+        return emb
+
+
+def _full_embedding(shape_x, shape_y, k, fmap, tau, fac_spec, fac_norm, config, shell_x=None, shell_y=None,
+                    buffers=None):
+    """Full-resolution product embedding for shell size ``k`` and a fitted ``(C, tau)``.
+
+    With ``buffers`` (:class:`_EmbeddingBuffers`), float64 views of them holding the same values.
+    """
     incl = config.sigmoid_inclusive
     if shell_x is None:
         shell_x = _shell(shape_x, k, config.smooth_x, incl)
@@ -747,7 +788,10 @@ def _full_embedding(shape_x, shape_y, k, fmap, tau, fac_spec, fac_norm, config, 
     normals_x = vertex_normals(deformed, shape_x.faces)
     normals_y = vertex_normals(shell_y, shape_y.faces)
     fac_s, fac_n = _embedding_scales(shell_y, phi_y, normals_y, fac_spec, fac_norm)
-    emb_x, emb_y = _product_embedding(deformed, phi_x @ fmap, normals_x, shell_y, phi_y, normals_y, fac_s, fac_n)
+    if buffers is None:
+        emb_x, emb_y = _product_embedding(deformed, phi_x @ fmap, normals_x, shell_y, phi_y, normals_y, fac_s, fac_n)
+    else:
+        emb_x, emb_y = buffers.fill(deformed, phi_x, fmap, normals_x, shell_y, phi_y, normals_y, fac_s, fac_n)
     return emb_x, emb_y, deformed
 
 
@@ -791,7 +835,8 @@ def product_embedding_maps(
     with torch.no_grad():
         fmap, tau = fmap.detach().to(shape_x.evecs.dtype), tau.detach().to(shape_x.evecs.dtype)
         emb_x, emb_y, deformed = _full_embedding(shape_x, shape_y, k, fmap, tau, fac_spec, fac_norm, config)
-        map_x_to_y, map_y_to_x = bidirectional_nearest_neighbors(emb_x, emb_y, backend=config.nn_backend)
+        map_x_to_y, map_y_to_x = bidirectional_nearest_neighbors(emb_x, emb_y, backend=config.nn_backend,
+                                                                workers=torch.get_num_threads())
     return DeepShellsMatch(map_x_to_y=map_x_to_y, map_y_to_x=map_y_to_x, fmap=fmap, tau=tau, deformed_x=deformed)
 
 
@@ -831,14 +876,16 @@ def refine_deep_shells(
     with torch.no_grad():
         # normal equations carried from level to level (float64 products of the bases' blocks)
         system = _PairNormalEquations(shape_x.evecs[:, : max(ks)], shape_y.evecs[:, : max(ks)])
+        buffers = _EmbeddingBuffers(shape_x.n_verts, shape_y.n_verts, max(ks), shape_x.evecs)
         for k in ks:
             shell_x = _shell(shape_x, k, config.smooth_x, incl)
             shell_y = _shell(shape_y, k, "sigmoid", incl)
             fmap, tau = system.solve(k, shell_x, shell_y, map_x_to_y, map_y_to_x, config.ridge)
             fmap, tau = fmap.to(shape_x.evecs.dtype), tau.to(shape_x.evecs.dtype)
             emb_x, emb_y, deformed = _full_embedding(shape_x, shape_y, k, fmap, tau, config.refine_fac_spec,
-                                                     config.refine_fac_norm, config, shell_x, shell_y)
-            map_x_to_y, map_y_to_x = bidirectional_nearest_neighbors(emb_x, emb_y, backend=config.nn_backend)
+                                                     config.refine_fac_norm, config, shell_x, shell_y, buffers)
+            map_x_to_y, map_y_to_x = bidirectional_nearest_neighbors(emb_x, emb_y, backend=config.nn_backend,
+                                                                workers=torch.get_num_threads())
     return DeepShellsMatch(map_x_to_y=map_x_to_y, map_y_to_x=map_y_to_x, fmap=fmap, tau=tau, deformed_x=deformed)
 
 
@@ -892,7 +939,7 @@ def deep_shells_query(
             samples_x = torch.arange(n_x, device=feat_x.device)
             samples_y = torch.arange(n_y, device=feat_y.device)
         fx, fy = feat_x[samples_x], feat_y[samples_y]
-        if not (torch.isfinite(fx).all() and torch.isfinite(fy).all()):
+        if not all_finite(fx, fy):
             raise NumericalError("deep_shells_query: the features contain NaN or Inf")
         incl = config.sigmoid_inclusive
         phi_x, phi_y = shape_x.evecs[samples_x, :k], shape_y.evecs[samples_y, :k]

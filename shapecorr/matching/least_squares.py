@@ -18,6 +18,7 @@ from __future__ import annotations
 import torch
 
 from shapecorr.errors import ConfigError, NumericalError
+from shapecorr.geometry.finiteness import all_finite
 
 #: Ridge added to the normal equations, relative to the mean diagonal of the Gram matrix. Tiny on purpose:
 #: float64 Gram matrices are accurate to ~1e-16 relative, so 1e-8 only matters where the problem is
@@ -88,7 +89,7 @@ def solve_normal_equations(
         raise ConfigError(f"ridge must be >= 0, got {ridge}")
     g = gram.to(torch.float64)
     z = rhs.to(torch.float64)
-    if not (torch.isfinite(g).all() and torch.isfinite(z).all()):
+    if not all_finite(g, z):
         raise NumericalError(f"{what}: the normal equations contain NaN or Inf (check the input correspondences)")
     k = g.shape[-1]
     scale = torch.diagonal(g, dim1=-2, dim2=-1).mean(-1)
@@ -102,7 +103,7 @@ def solve_normal_equations(
             f"not determine the {k} unknowns"
         )
     sol = torch.cholesky_solve(z, chol)
-    if not torch.isfinite(sol).all():
+    if not all_finite(sol):
         raise NumericalError(f"{what}: the solution contains NaN or Inf")
     return sol
 

@@ -56,6 +56,7 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from shapecorr.errors import ConfigError, NumericalError
+from shapecorr.geometry.finiteness import all_finite
 
 #: Deep Shells ``sigma_sink`` (param.py DiffParam; stored in the released checkpoint's ``par``).
 DEFAULT_SIGMA = 0.1
@@ -555,7 +556,7 @@ def sinkhorn_log_reference(
     log_p = log_p - torch.logsumexp(log_p, dim=1, keepdim=True)
     plan = torch.exp(log_p)
     plan_adj = torch.exp(log_p - torch.logsumexp(log_p, dim=0, keepdim=True)).transpose(0, 1)
-    if not (torch.isfinite(plan).all() and torch.isfinite(plan_adj).all()):
+    if not all_finite(plan, plan_adj):
         raise NumericalError("sinkhorn: the transport plan contains NaN or Inf")
     return SinkhornPlans(plan, plan_adj)
 
@@ -685,7 +686,7 @@ def sinkhorn_sq_euclidean_products(
         plans = sinkhorn_log_reference(pairwise_sq_dists(x, y), sigma, num_iters)
         py, qx = plans.plan @ values_y, plans.plan_adj @ values_x
         plan, plan_adj = plans.plan.detach(), plans.plan_adj.detach()
-    if not (torch.isfinite(py).all() and torch.isfinite(qx).all()):
+    if not all_finite(py, qx):
         raise NumericalError("sinkhorn_sq_euclidean_products: the transported values contain NaN or Inf")
     if not return_plans:
         plan = plan_adj = None

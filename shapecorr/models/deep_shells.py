@@ -49,6 +49,7 @@ from torch import nn
 
 from shapecorr.data.operators import merge_requests
 from shapecorr.errors import ConfigError, NumericalError
+from shapecorr.geometry.finiteness import all_finite
 from shapecorr.geometry.spectral_shape import make_spectral_shape
 from shapecorr.matching.deep_shells import (
     DeepShellsConfig,
@@ -339,7 +340,7 @@ class DeepShells(CorrespondenceModule):
         config, refine = self.match_config()
         with torch.no_grad():
             fx, fy = self.features(x), self.features(y)
-            if not (torch.isfinite(fx).all() and torch.isfinite(fy).all()):
+            if not all_finite(fx, fy):
                 raise NumericalError(f"deep_shells: the features of {x.name} or {y.name} contain NaN or Inf")
             result = deep_shells_query(fx, fy, self.spectral_shape(x), self.spectral_shape(y), config, refine=refine)
         return MatchResult(p2p=result.map_x_to_y, p2p_inv=result.map_y_to_x)

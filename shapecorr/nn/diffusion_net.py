@@ -42,6 +42,7 @@ import torch
 from torch import nn
 
 from shapecorr.errors import ConfigError, NumericalError
+from shapecorr.geometry.finiteness import all_finite
 from shapecorr.nn.backbone import Backbone
 
 #: Published DiffusionNet setting of G-MSM (Eisenberger et al., CVPR 2023, with the DiffusionNet defaults of
@@ -180,12 +181,21 @@ class DiffusionNetBlock(nn.Module):
         n_in = 3 * width if with_gradient_features else 2 * width
         self.mlp = _mlp([n_in, *mlp_hidden, width], dropout)
 
-    def forward(self, x, evals, evecs, mass, grad_x, grad_y) -> torch.Tensor:
-        """``x (n, W)`` -> ``(n, W)``; operators as in :meth:`DiffusionNet.forward`."""
+    def forward(self, x, evals, evecs, mass, grad_x, grad_y, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """``x (n, W)`` -> ``(n, W)``, or ``(len(rows), W)`` at the vertices ``rows``.
+
+        Operators as in :meth:`DiffusionNet.forward`. The diffusion and the gradients need every vertex; the
+        per-vertex layers after them (gradient features, MLP) run at ``rows`` only, with the values they have
+        there in the full computation.
+        """
         h = self.diffusion(x, evals, evecs, mass)
+        grads = (grad_x @ h, grad_y @ h) if self.gradient is not None else None
+        if rows is not None:
+            x, h = x[rows], h[rows]
+            grads = None if grads is None else (grads[0][rows], grads[1][rows])
         parts = [x, h]
-        if self.gradient is not None:
-            parts.append(self.gradient(grad_x @ h, grad_y @ h))
+        if grads is not None:
+            parts.append(self.gradient(*grads))
         return x + self.mlp(torch.cat(parts, dim=1))
 
 
@@ -250,8 +260,9 @@ class DiffusionNet(nn.Module):
         mass: torch.Tensor,
         grad_x: torch.Tensor,
         grad_y: torch.Tensor,
+        rows: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Per-vertex features.
+        """Per-vertex features, at every vertex or at ``rows``.
 
         Parameters
         ----------
@@ -262,10 +273,15 @@ class DiffusionNet(nn.Module):
         mass : (n,) float
         grad_x, grad_y : (n, n) torch sparse float
             Tangent-frame gradient operators (:func:`shapecorr.geometry.diffusion_operators.spatial_gradient`).
+        rows : (r,) int64, optional
+            Vertices whose features are wanted. Without gradients and without an active dropout layer
+            (inference), the last block's per-vertex layers and the output layer run at these rows only, with
+            the values of the full computation there; otherwise every vertex is computed and the rows are
+            selected at the end, so that training (dropout masks, gradient sums) is that of the full computation.
 
         Returns
         -------
-        (n, C_out) float
+        (n, C_out) or (r, C_out) float
         """
         n = x.shape[0]
         if x.ndim != 2 or x.shape[1] != self.in_channels:
@@ -279,12 +295,18 @@ class DiffusionNet(nn.Module):
             raise ConfigError(f"gradient operators must be ({n}, {n}), "
                               f"got {tuple(grad_x.shape)}, {tuple(grad_y.shape)}")
         h = self.first_lin(x)
-        for block in self.blocks:
-            h = block(h, evals, evecs, mass, grad_x, grad_y)
+        # inference: the last block's per-vertex layers at the rows only (per row the same products)
+        early = (rows is not None and len(self.blocks) > 0 and not torch.is_grad_enabled()
+                 and not self._dropout_active())
+        for i, block in enumerate(self.blocks):
+            h = block(h, evals, evecs, mass, grad_x, grad_y, rows if early and i == len(self.blocks) - 1 else None)
         out = self.last_lin(h)
         if self.last_activation is not None:
             out = self.last_activation(out)
-        return out
+        return out if rows is None or early else out[rows]
+
+    def _dropout_active(self) -> bool:
+        return any(isinstance(m, nn.Dropout) and m.training and m.p > 0 for m in self.modules())
 
 
 class DiffusionNetBackbone(Backbone):
@@ -373,10 +395,10 @@ class DiffusionNetBackbone(Backbone):
         mass = torch.as_tensor(eig["mass"], dtype=dtype, device=device)
         grad_x = grads["grad_x"].to(device=device, dtype=dtype)
         grad_y = grads["grad_y"].to(device=device, dtype=dtype)
-        out = self.net(self._input(sample, dtype, device), evals, evecs, mass, grad_x, grad_y)
-        if not torch.isfinite(out).all():
+        out = self.net(self._input(sample, dtype, device), evals, evecs, mass, grad_x, grad_y, rows)
+        if not all_finite(out):
             raise NumericalError("DiffusionNet produced NaN/Inf features (check the operators and the input)")
-        return out if rows is None else out[rows]
+        return out
 
 
 __all__ = [

@@ -30,9 +30,11 @@ def _perturb(m, n_target, fraction, g):
     return m
 
 
-@pytest.mark.parametrize("row_block, dtype", [(None, torch.float64), (37, torch.float64), (37, torch.float32)])
+@pytest.mark.parametrize("row_block, dtype", [(None, torch.float64), (None, torch.float32), (37, torch.float64),
+                                              (37, torch.float32)])
 def test_carried_normal_equations_equal_the_per_level_solve(monkeypatch, row_block, dtype):
-    """Also with products summed over row blocks (large meshes) and float32 bases (converted per block)."""
+    """Also with products summed over row blocks (large meshes) and float32 bases (converted once when a basis fits
+    in one block, else per block)."""
     if row_block is not None:
         monkeypatch.setattr(ds, "REFINE_ROW_BLOCK", row_block)
     phi_x, phi_y, mxy, myx, g = _problem()
@@ -48,7 +50,9 @@ def test_carried_normal_equations_equal_the_per_level_solve(monkeypatch, row_blo
 
         monkeypatch.setattr(ds._PairNormalEquations, name, counted)
     system = ds._PairNormalEquations(phi_x, phi_y)
-    assert system.phi_x.dtype == dtype  # the bases are not copied to float64
+    # one row block: the bases converted to float64 once; more: kept in their dtype, converted per block
+    assert system.phi_x.dtype == (torch.float64 if row_block is None else dtype)
+    assert system.phi_y.dtype == system.phi_x.dtype
     # growing k with few changed pairs (update + extension), a repeated k, most pairs changed, unchanged
     # pairs, and a smaller k (rebuild)
     schedule = [(6, 0.0), (6, 0.05), (9, 0.02), (14, 0.01), (20, 0.0), (20, 0.9), (27, 0.0), (33, 0.03),
@@ -72,3 +76,22 @@ def test_carried_normal_equations_reject_a_k_beyond_the_basis():
     system = ds._PairNormalEquations(phi_x, phi_y)
     with pytest.raises(ConfigError, match="k=11"):
         system.solve(11, torch.zeros(180, 3), torch.zeros(150, 3), mxy, myx, 1e-8)
+
+
+def test_embedding_buffers_hold_the_product_embedding():
+    """The refinement's float64 embedding buffers hold exactly the values of the float32 product embedding."""
+    g = torch.Generator().manual_seed(3)
+    n_x, n_y, kmax = 70, 83, 25
+    evecs_x, evecs_y = torch.randn(n_x, kmax + 4, generator=g), torch.randn(n_y, kmax + 4, generator=g)
+    buffers = ds._EmbeddingBuffers(n_x, n_y, kmax, evecs_x)
+    for k in (3, 11, 25, 7):  # growing, the largest, then smaller again: views of the same storage
+        fmap = torch.randn(k, k, generator=g)
+        deformed, normals_x = torch.randn(n_x, 3, generator=g), torch.randn(n_x, 3, generator=g)
+        shell_y, normals_y = torch.randn(n_y, 3, generator=g), torch.randn(n_y, 3, generator=g)
+        fac_s, fac_n = torch.tensor(0.37), torch.tensor(0.041)
+        phi_x, phi_y = evecs_x[:, :k], evecs_y[:, :k]
+        ref_x, ref_y = ds._product_embedding(deformed, phi_x @ fmap, normals_x, shell_y, phi_y, normals_y, fac_s,
+                                             fac_n)
+        emb_x, emb_y = buffers.fill(deformed, phi_x, fmap, normals_x, shell_y, phi_y, normals_y, fac_s, fac_n)
+        assert emb_x.dtype == emb_y.dtype == torch.float64 and emb_x.is_contiguous() and emb_y.is_contiguous()
+        assert torch.equal(emb_x, ref_x.double()) and torch.equal(emb_y, ref_y.double())

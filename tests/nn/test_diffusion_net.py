@@ -140,6 +140,31 @@ def test_backbone_interface_rows_operators_and_dropout(ellipsoid):
     assert not torch.equal(net(ellipsoid), net(ellipsoid))  # dropout on while training
 
 
+@pytest.mark.parametrize("n_blocks", [0, 1, 3])
+def test_features_at_rows_equal_the_full_features_at_those_rows(ellipsoid, n_blocks):
+    """Inference runs the last block's per-vertex layers at the rows only: the values must not change; with dropout
+    active (or gradients on) everything runs at every vertex, so the masks are those of the full computation."""
+    torch.manual_seed(0)
+    net = DiffusionNetBackbone(k_eig=K_EIG, width=16, out_channels=8, n_blocks=n_blocks)
+    with torch.no_grad():  # diffusion that does something
+        for block in net.net.blocks:
+            block.diffusion.times.copy_(torch.rand(block.diffusion.times.shape) * 0.05)
+    rows = torch.tensor([5, 0, 7, 5, len(ellipsoid.verts) - 1])  # repeated rows, as in the training samples
+    net.eval()
+    with torch.no_grad():
+        full = net(ellipsoid)
+        assert torch.equal(net(ellipsoid, rows), full[rows])
+    part = net(ellipsoid, rows)  # with gradients: the full computation, then the rows
+    assert torch.equal(part, full[rows]) and part.requires_grad
+    net.train()
+    for grad in (False, True):
+        with torch.set_grad_enabled(grad):
+            torch.manual_seed(1)
+            full = net(ellipsoid)
+            torch.manual_seed(1)
+            assert torch.equal(net(ellipsoid, rows), full[rows])
+
+
 def test_gradients_reach_every_parameter_and_times_stay_non_negative(ellipsoid):
     torch.manual_seed(0)
     net = DiffusionNetBackbone(k_eig=K_EIG, width=16, out_channels=8, dropout=0.0)
