@@ -53,8 +53,10 @@ PUBLISHED_KNN = 5
 PUBLISHED_LAMBDA_REG = 20.0
 #: The original code divides the ARAP sum by ``n * n_steps * 25 / k`` (docs/divfree.md §4).
 ARAP_NORMALIZATION = 25.0
-#: Descriptor the product space uses (computed by the data pipeline).
+#: Descriptor the product space uses by default (computed by the data pipeline).
 DESCRIPTOR = "shot"
+#: Descriptors the product space can use (operators of the data pipeline; docs/divfree.md §4).
+DESCRIPTORS = ("shot", "wks", "hks")
 
 
 @dataclass(frozen=True)
@@ -281,6 +283,9 @@ class DivFreeMatcher:
     prealign_score_descriptors : float
         ``smooth_shells`` mode: weight of the intrinsic basis features in the candidates' scores (Smooth Shells'
         ``score_descriptors``; 0: its original geometric score).
+    descriptor : str or sequence of str
+        Descriptor(s) of the product space, of :data:`DESCRIPTORS` (``"shot"``: the default; ``"wks"``, ``"hks"``:
+        the intrinsic spectral signatures; several: concatenated, each with unit rows, docs/divfree.md §4).
     """
 
     needs_ground_truth = False
@@ -310,6 +315,7 @@ class DivFreeMatcher:
         prealign_icp_iterations: int = 30,
         prealign_keep_input: bool = True,
         prealign_score_descriptors: float = 0.3,
+        descriptor=DESCRIPTOR,
     ):
         modes = [int(m) for m in (modes if isinstance(modes, (list, tuple)) else [modes])]
         n = len(modes)
@@ -353,8 +359,15 @@ class DivFreeMatcher:
         self.prealign_icp_iterations = int(prealign_icp_iterations)
         self.prealign_keep_input = bool(prealign_keep_input)
         self.prealign_score_descriptors = float(prealign_score_descriptors)
+        names = [descriptor] if isinstance(descriptor, str) else [str(d) for d in descriptor]
+        if not names or any(d not in DESCRIPTORS for d in names) or len(set(names)) != len(names):
+            raise ConfigError(f"divfree: descriptor must be one or more distinct names of {DESCRIPTORS}, "
+                              f"got {descriptor}")
+        self.descriptors = tuple(names)
         uses_descriptor = any(level.descriptor_weight > 0 for level in self.levels)
-        self.required_operators = {DESCRIPTOR: {}} if uses_descriptor or prealign == "smooth_shells" else {}
+        self.required_operators = {d: {} for d in self.descriptors} if uses_descriptor else {}
+        if prealign == "smooth_shells":  # the rigid stage's basis features need SHOT
+            self.required_operators[DESCRIPTOR] = {}
         if prealign == "smooth_shells":  # the eigenbasis of Smooth Shells' published preset (shared cache entries)
             from shapecorr.axiomatic.smooth_shells import SmoothShellsConfig
 
@@ -364,21 +377,29 @@ class DivFreeMatcher:
     # pieces
     # ------------------------------------------------------------------------------------------------------
     def _descriptor(self, sample) -> torch.Tensor | None:
+        """The product space's descriptor block of ``sample`` (n, c), or None when no level weights it.
+
+        Each descriptor of ``self.descriptors`` with unit rows, divided by the square root of their count (so the
+        block has unit rows).
+        """
         if not any(level.descriptor_weight > 0 for level in self.levels):
             return None
-        feats = sample.features.get(DESCRIPTOR)
-        if feats is None:
-            raise ConfigError(
-                f"shape {sample.name!r} has no {DESCRIPTOR!r} descriptor: add it to data.operators.request "
-                "(e.g. +data.operators.request={shot:{}}), or set model.descriptor_weight=0"
-            )
-        if feats.ndim != 2 or feats.shape[0] != sample.shape.n_verts:
-            raise ConfigError(f"{DESCRIPTOR} of {sample.name!r} has shape {tuple(feats.shape)}, expected (n, c)")
-        if not bool(torch.isfinite(feats).all()):
-            raise NumericalError(f"the {DESCRIPTOR} descriptor of {sample.name!r} contains NaN or infinite values")
-        feats = feats.to(torch.float32)
-        # Unit rows: the weight then sets the descriptor's share of the product-space distance.
-        return feats / feats.norm(dim=1, keepdim=True).clamp_min(torch.finfo(feats.dtype).tiny)
+        blocks = []
+        for name in self.descriptors:
+            feats = sample.features.get(name)
+            if feats is None:
+                raise ConfigError(
+                    f"shape {sample.name!r} has no {name!r} descriptor: add it to data.operators.request "
+                    f"(e.g. +data.operators.request={{{name}:{{}}}}), or set model.descriptor_weight=0"
+                )
+            if feats.ndim != 2 or feats.shape[0] != sample.shape.n_verts:
+                raise ConfigError(f"{name} of {sample.name!r} has shape {tuple(feats.shape)}, expected (n, c)")
+            if not bool(torch.isfinite(feats).all()):
+                raise NumericalError(f"the {name} descriptor of {sample.name!r} contains NaN or infinite values")
+            feats = feats.to(torch.float32)
+            # Unit rows: the weight then sets the descriptor's share of the product-space distance.
+            blocks.append(feats / feats.norm(dim=1, keepdim=True).clamp_min(torch.finfo(feats.dtype).tiny))
+        return torch.cat(blocks, dim=1) / float(np.sqrt(len(blocks)))
 
     def _flow(self, points: torch.Tensor, coeffs: torch.Tensor, return_path: bool = False) -> torch.Tensor:
         return df.integrate_flow(points, coeffs, self.n_steps, self.rule, return_path=return_path,

@@ -236,3 +236,26 @@ def test_rigid_icp_recovers_a_rigid_motion():
     r, _ = rigid_icp(x, nx, (x @ big.T)[perm], (nx @ big.T)[perm], iterations=3, features_x=feats,
                      features_y=feats[perm])
     torch.testing.assert_close(r, big, atol=1e-6, rtol=0)
+
+
+def test_descriptor_option():
+    """Several descriptors: each with unit rows, the block with unit rows; names and presence checked."""
+    v, f = _blob(300)
+    gen = torch.Generator().manual_seed(0)
+    shot_rows, wks = torch.rand(len(v), 12, generator=gen) + 0.1, torch.rand(len(v), 7, generator=gen) + 0.1
+    sample = ShapeSample(shape=make_shape(v, f, "x", normalization=None),
+                         operators={"shot": {"shot": shot_rows}, "wks": {"wks": wks}})
+    both = DivFreeMatcher(**FAST, prealign="none", descriptor=["shot", "wks"])
+    assert both.required_operators == {"shot": {}, "wks": {}}
+    assert DivFreeMatcher(**FAST, prealign="smooth_shells", descriptor="wks").required_operators.keys() == {
+        "wks", "shot", "eigenbasis"}
+    block = both._descriptor(sample)
+    assert block.shape == (len(v), 12 + 7)
+    torch.testing.assert_close(block.norm(dim=1), torch.ones(len(v)))
+    torch.testing.assert_close(block[:, -7:] * np.sqrt(2), wks / wks.norm(dim=1, keepdim=True))
+    with pytest.raises(ConfigError, match="descriptor"):
+        DivFreeMatcher(descriptor="sift")
+    with pytest.raises(ConfigError, match="descriptor"):
+        DivFreeMatcher(descriptor=["wks", "wks"])
+    with pytest.raises(ConfigError, match="hks"):
+        DivFreeMatcher(**FAST, prealign="none", descriptor="hks")._descriptor(sample)
