@@ -21,7 +21,10 @@ median errors, the per-pair list (error, error vs mirror, seconds), the mirrored
 ========================  =============================================================================
 run                       evaluate.py arguments
 ========================  =============================================================================
-divfree                   ``model=divfree`` (config default: Smooth Shells' rigid stage as the pre-alignment)
+divfree                   ``model=divfree`` (config default: Smooth Shells' rigid stage as the pre-alignment, WKS in
+                          the product space)
+divfree_shot              ``model=divfree model.descriptor=shot model.descriptor_weight=[0.2,0.1,0.05]`` (the
+                          earlier default product space, SHOT)
 divfree_pca               ``model=divfree model.prealign=pca`` (the paper's 4 axis-sign candidates)
 divfree_noprealign        ``model=divfree model.prealign=none`` (x as given)
 divfree_pca_turns         ``model=divfree model.prealign=pca_turns`` (8 PCA orientations, ICP-refined)
@@ -53,6 +56,7 @@ RESULT = REPO / "benchmarks" / "results" / "mirror_flips.json"
 TEST_SHAPES = [f"tr_reg_{i:03d}" for i in range(80, 100)]
 RUNS = {
     "divfree": ["model=divfree"],
+    "divfree_shot": ["model=divfree", "model.descriptor=shot", "model.descriptor_weight=[0.2,0.1,0.05]"],
     "divfree_pca": ["model=divfree", "model.prealign=pca"],
     "divfree_noprealign": ["model=divfree", "model.prealign=none"],
     "divfree_pca_turns": ["model=divfree", "model.prealign=pca_turns"],

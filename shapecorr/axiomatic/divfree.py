@@ -4,7 +4,7 @@ x is flowed onto y along a stationary, divergence-free velocity field on the uni
 (:mod:`shapecorr.geometry.divergence_free`); the correspondence is read off the deformed x. The field
 coefficients are optimized coarse to fine (more modes and more samples per level), alternating
 
-1. **correspondences**: nearest neighbours in the product space ``[coordinates, w_n normals, w_s SHOT]``
+1. **correspondences**: nearest neighbours in the product space ``[coordinates, w_n normals, w_d descriptor]``
    between the deformed samples of x and y, in both directions (samples of x -> all vertices of y, samples of
    y -> the deformed samples of x, so that only the samples are flowed with gradients), every ``corr_every``
    iterations;
@@ -53,7 +53,9 @@ PUBLISHED_KNN = 5
 PUBLISHED_LAMBDA_REG = 20.0
 #: The original code divides the ARAP sum by ``n * n_steps * 25 / k`` (docs/divfree.md §4).
 ARAP_NORMALIZATION = 25.0
-#: Descriptor the product space uses by default (computed by the data pipeline).
+#: Descriptor the product space uses by default (computed by the data pipeline; docs/divfree.md §4, §8).
+DEFAULT_DESCRIPTOR = "wks"
+#: Descriptor the Smooth Shells pre-alignment needs (its basis features, docs/smooth_shells.md).
 DESCRIPTOR = "shot"
 #: Descriptors the product space can use (operators of the data pipeline; docs/divfree.md §4).
 DESCRIPTORS = ("shot", "wks", "hks")
@@ -243,7 +245,7 @@ class DivFreeMatcher:
     iterations : sequence of int
         Adam iterations per level.
     normal_weight, descriptor_weight : float or sequence of float
-        Weights of the normals and of the (unit-row) SHOT descriptor in the product space, per level.
+        Weights of the normals and of the (unit-row) descriptor block in the product space, per level.
     n_steps : int
         Time steps of the flow.
     rule : {"midpoint", "original"}
@@ -284,8 +286,9 @@ class DivFreeMatcher:
         ``smooth_shells`` mode: weight of the intrinsic basis features in the candidates' scores (Smooth Shells'
         ``score_descriptors``; 0: its original geometric score).
     descriptor : str or sequence of str
-        Descriptor(s) of the product space, of :data:`DESCRIPTORS` (``"shot"``: the default; ``"wks"``, ``"hks"``:
-        the intrinsic spectral signatures; several: concatenated, each with unit rows, docs/divfree.md §4).
+        Descriptor(s) of the product space, of :data:`DESCRIPTORS`: ``"wks"`` (the default, the intrinsic wave
+        kernel signature), ``"shot"`` (the earlier default), ``"hks"``; several are concatenated, each with unit
+        rows (docs/divfree.md §4).
     """
 
     needs_ground_truth = False
@@ -296,7 +299,7 @@ class DivFreeMatcher:
         samples=(500, 1000, 2000),
         iterations=(50, 50, 100),
         normal_weight=0.1,
-        descriptor_weight=(0.2, 0.1, 0.05),
+        descriptor_weight=(2.0, 1.0, 0.5),
         n_steps: int = df.PUBLISHED_N_STEPS,
         rule: str = "midpoint",
         lr=(0.01, 0.005, 0.002),
@@ -315,7 +318,7 @@ class DivFreeMatcher:
         prealign_icp_iterations: int = 30,
         prealign_keep_input: bool = True,
         prealign_score_descriptors: float = 0.3,
-        descriptor=DESCRIPTOR,
+        descriptor=DEFAULT_DESCRIPTOR,
     ):
         modes = [int(m) for m in (modes if isinstance(modes, (list, tuple)) else [modes])]
         n = len(modes)
@@ -489,9 +492,9 @@ class DivFreeMatcher:
         """Misalignment of a placement at rest (lower is better).
 
         Every sample of either shape is paired with its nearest sample of the other in ``[xyz, w_n normals]``;
-        the score is the mean product-space distance ``|[xyz, w_n normals, w_s SHOT]|`` of these pairs (the first
-        level's weights). The descriptor term makes it intrinsic where the coordinates are not: a body turned front
-        to back overlaps itself in space, but its spatial pairs then disagree in SHOT.
+        the score is the mean product-space distance ``|[xyz, w_n normals, w_d descriptor]|`` of these pairs (the
+        first level's weights). The descriptor term makes it intrinsic where the coordinates are not: a body turned
+        front to back overlaps itself in space, but its spatial pairs then disagree in the descriptor.
         """
         level = self.levels[0]
         sx, sy = st["order_x"][:level.n_samples], st["order_y"][:level.n_samples]
