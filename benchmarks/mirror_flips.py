@@ -10,16 +10,21 @@ the numbers of ``tr_reg_xxx``). ``--parallel P`` splits the pairs into P interle
 processes at once (each with ``--threads`` threads; on a GPU machine they share the device), into
 ``RUN_DIR/<run>/part_<k>``; a run stopped early resumes where it stopped.
 
-A pair counts as **mirrored** when its mean geodesic error against the mirrored ground truth (``corres/*.sym.vts``)
-is below its error against the ground truth. Recorded per run: mean / median error, the per-pair list (error,
-error vs mirror, seconds), the mirrored count and pairs, seconds per pair (the matcher alone), and for
-interpolating matchers the mean volume change at t = 1. Written to ``--out``
+Two medians are recorded: over the pairs (of the per-pair mean errors, ``median_geodesic_error``) and over all
+points of all pairs pooled (``median_point_error``, what evaluate.py's metrics.json calls
+``median_geodesic_error``). A pair counts as **mirrored** when its mean geodesic error against the mirrored
+ground truth (``corres/*.sym.vts``) is below its error against the ground truth. Recorded per run: mean /
+median errors, the per-pair list (error, error vs mirror, seconds), the mirrored count and pairs, seconds per pair
+(the matcher alone), and for interpolating matchers the mean volume change at t = 1. Written to ``--out``
 (default ``benchmarks/results/mirror_flips.json``). No ground truth is used by any matcher; it only scores.
 
 ========================  =============================================================================
 run                       evaluate.py arguments
 ========================  =============================================================================
-divfree                   ``model=divfree`` (config default: Smooth Shells' rigid stage as the pre-alignment)
+divfree                   ``model=divfree`` (config default: Smooth Shells' rigid stage as the pre-alignment, WKS in
+                          the product space)
+divfree_shot              ``model=divfree model.descriptor=shot model.descriptor_weight=[0.2,0.1,0.05]`` (the
+                          earlier default product space, SHOT)
 divfree_pca               ``model=divfree model.prealign=pca`` (the paper's 4 axis-sign candidates)
 divfree_noprealign        ``model=divfree model.prealign=none`` (x as given)
 divfree_pca_turns         ``model=divfree model.prealign=pca_turns`` (8 PCA orientations, ICP-refined)
@@ -51,6 +56,7 @@ RESULT = REPO / "benchmarks" / "results" / "mirror_flips.json"
 TEST_SHAPES = [f"tr_reg_{i:03d}" for i in range(80, 100)]
 RUNS = {
     "divfree": ["model=divfree"],
+    "divfree_shot": ["model=divfree", "model.descriptor=shot", "model.descriptor_weight=[0.2,0.1,0.05]"],
     "divfree_pca": ["model=divfree", "model.prealign=pca"],
     "divfree_noprealign": ["model=divfree", "model.prealign=none"],
     "divfree_pca_turns": ["model=divfree", "model.prealign=pca_turns"],
@@ -81,23 +87,32 @@ def named_pairs(spec: str) -> list[tuple[str, str]]:
 
 
 def read_pairs(folder: Path) -> list[dict]:
-    """Per-pair records ``pairs/*.json`` written by evaluate.py under ``folder`` (all parts)."""
+    """Per-pair records ``pairs/*.json`` written by evaluate.py under ``folder`` (all parts).
+
+    Each row also carries ``point_errors``: the pair's per-point errors (``pairs/*.npz``), for the pooled median.
+    """
     rows = []
     for js in sorted(folder.glob("part_*/pairs/*.json")):
         rec = json.loads(js.read_text())
+        with np.load(js.with_suffix(".npz")) as arrays:
+            points = arrays["errors"].astype(np.float64)
         rows.append({"pair": f"{rec['source'][-3:]}-{rec['target'][-3:]}", "error": rec["mean_error"],
                      "error_mirror": rec.get("mean_error_sym"), "seconds": rec["seconds"],
-                     "volume_change": rec.get("volume_change")})
+                     "volume_change": rec.get("volume_change"), "point_errors": points})
     return rows
 
 
 def summarize(rows: list[dict]) -> dict:
+    """Mean, medians (over pairs and over all points pooled), mirrored pairs, seconds of the per-pair ``rows``."""
+    pooled = np.concatenate([r.pop("point_errors") for r in rows])
     err = np.array([r["error"] for r in rows])
     mirrored = [r["pair"] for r in rows if r["error_mirror"] is not None and r["error_mirror"] < r["error"]]
     secs = np.array([r["seconds"] for r in rows])
     vol = [r["volume_change"] for r in rows if r["volume_change"] is not None]
     out = {"n_pairs": len(rows), "mean_geodesic_error": float(err.mean()), "median_geodesic_error":
            float(np.median(err)), "mean_over_median": float(err.mean() / np.median(err)),
+           "median_point_error": float(np.median(pooled)),
+           "mean_over_median_point": float(err.mean() / np.median(pooled)),
            "mirrored_count": len(mirrored), "mirrored_pairs": mirrored,
            "seconds_per_pair": float(secs.mean()), "median_seconds_per_pair": float(np.median(secs)),
            "per_pair": rows}
@@ -161,12 +176,15 @@ def main(argv=None) -> int:
         results[run] = {**summarize(rows), "wall_seconds": time.perf_counter() - start,
                         "overrides": RUNS[run] + args.override}
         s = results[run]
-        print(f"{run}: {s['n_pairs']} pairs, mean {100 * s['mean_geodesic_error']:.2f} median "
-              f"{100 * s['median_geodesic_error']:.2f} (x100), mirrored {s['mirrored_count']} "
+        print(f"{run}: {s['n_pairs']} pairs, mean {100 * s['mean_geodesic_error']:.2f} median over pairs "
+              f"{100 * s['median_geodesic_error']:.2f} over points {100 * s['median_point_error']:.2f} (x100), "
+              f"mirrored {s['mirrored_count']} "
               f"{s['mirrored_pairs']}, {s['seconds_per_pair']:.1f} s/pair", flush=True)
     summary = {"pairs": args.pairs or f"{len(pairs)} evenly spaced of the 380 FAUST_r test pairs",
                "parallel": args.parallel, "threads": args.threads, "device": args.device, "runs": results,
                "units": "errors: geodesic distance / sqrt(area of the target), heat geodesics (x100 = percent); "
+                        "median_geodesic_error: median over pairs of the per-pair means; median_point_error: "
+                        "over all points of all pairs pooled (evaluate.py's median_geodesic_error); "
                         "mirrored: error vs the mirrored ground truth below the error vs the ground truth"}
     report = bench_common.summary_report("mirror_flips.py", sys.argv[1:] if argv is None else list(argv), summary)
     bench_common.write_report(args.out, report)

@@ -4,7 +4,7 @@ x is flowed onto y along a stationary, divergence-free velocity field on the uni
 (:mod:`shapecorr.geometry.divergence_free`); the correspondence is read off the deformed x. The field
 coefficients are optimized coarse to fine (more modes and more samples per level), alternating
 
-1. **correspondences**: nearest neighbours in the product space ``[coordinates, w_n normals, w_s SHOT]``
+1. **correspondences**: nearest neighbours in the product space ``[coordinates, w_n normals, w_d descriptor]``
    between the deformed samples of x and y, in both directions (samples of x -> all vertices of y, samples of
    y -> the deformed samples of x, so that only the samples are flowed with gradients), every ``corr_every``
    iterations;
@@ -53,8 +53,12 @@ PUBLISHED_KNN = 5
 PUBLISHED_LAMBDA_REG = 20.0
 #: The original code divides the ARAP sum by ``n * n_steps * 25 / k`` (docs/divfree.md §4).
 ARAP_NORMALIZATION = 25.0
-#: Descriptor the product space uses (computed by the data pipeline).
+#: Descriptor the product space uses by default (computed by the data pipeline; docs/divfree.md §4, §8).
+DEFAULT_DESCRIPTOR = "wks"
+#: Descriptor the Smooth Shells pre-alignment needs (its basis features, docs/smooth_shells.md).
 DESCRIPTOR = "shot"
+#: Descriptors the product space can use (operators of the data pipeline; docs/divfree.md §4).
+DESCRIPTORS = ("shot", "wks", "hks")
 
 
 @dataclass(frozen=True)
@@ -241,7 +245,7 @@ class DivFreeMatcher:
     iterations : sequence of int
         Adam iterations per level.
     normal_weight, descriptor_weight : float or sequence of float
-        Weights of the normals and of the (unit-row) SHOT descriptor in the product space, per level.
+        Weights of the normals and of the (unit-row) descriptor block in the product space, per level.
     n_steps : int
         Time steps of the flow.
     rule : {"midpoint", "original"}
@@ -281,6 +285,10 @@ class DivFreeMatcher:
     prealign_score_descriptors : float
         ``smooth_shells`` mode: weight of the intrinsic basis features in the candidates' scores (Smooth Shells'
         ``score_descriptors``; 0: its original geometric score).
+    descriptor : str or sequence of str
+        Descriptor(s) of the product space, of :data:`DESCRIPTORS`: ``"wks"`` (the default, the intrinsic wave
+        kernel signature), ``"shot"`` (the earlier default), ``"hks"``; several are concatenated, each with unit
+        rows (docs/divfree.md §4).
     """
 
     needs_ground_truth = False
@@ -291,7 +299,7 @@ class DivFreeMatcher:
         samples=(500, 1000, 2000),
         iterations=(50, 50, 100),
         normal_weight=0.1,
-        descriptor_weight=(0.2, 0.1, 0.05),
+        descriptor_weight=(2.0, 1.0, 0.5),
         n_steps: int = df.PUBLISHED_N_STEPS,
         rule: str = "midpoint",
         lr=(0.01, 0.005, 0.002),
@@ -310,6 +318,7 @@ class DivFreeMatcher:
         prealign_icp_iterations: int = 30,
         prealign_keep_input: bool = True,
         prealign_score_descriptors: float = 0.3,
+        descriptor=DEFAULT_DESCRIPTOR,
     ):
         modes = [int(m) for m in (modes if isinstance(modes, (list, tuple)) else [modes])]
         n = len(modes)
@@ -353,8 +362,15 @@ class DivFreeMatcher:
         self.prealign_icp_iterations = int(prealign_icp_iterations)
         self.prealign_keep_input = bool(prealign_keep_input)
         self.prealign_score_descriptors = float(prealign_score_descriptors)
+        names = [descriptor] if isinstance(descriptor, str) else [str(d) for d in descriptor]
+        if not names or any(d not in DESCRIPTORS for d in names) or len(set(names)) != len(names):
+            raise ConfigError(f"divfree: descriptor must be one or more distinct names of {DESCRIPTORS}, "
+                              f"got {descriptor}")
+        self.descriptors = tuple(names)
         uses_descriptor = any(level.descriptor_weight > 0 for level in self.levels)
-        self.required_operators = {DESCRIPTOR: {}} if uses_descriptor or prealign == "smooth_shells" else {}
+        self.required_operators = {d: {} for d in self.descriptors} if uses_descriptor else {}
+        if prealign == "smooth_shells":  # the rigid stage's basis features need SHOT
+            self.required_operators[DESCRIPTOR] = {}
         if prealign == "smooth_shells":  # the eigenbasis of Smooth Shells' published preset (shared cache entries)
             from shapecorr.axiomatic.smooth_shells import SmoothShellsConfig
 
@@ -364,21 +380,29 @@ class DivFreeMatcher:
     # pieces
     # ------------------------------------------------------------------------------------------------------
     def _descriptor(self, sample) -> torch.Tensor | None:
+        """The product space's descriptor block of ``sample`` (n, c), or None when no level weights it.
+
+        Each descriptor of ``self.descriptors`` with unit rows, divided by the square root of their count (so the
+        block has unit rows).
+        """
         if not any(level.descriptor_weight > 0 for level in self.levels):
             return None
-        feats = sample.features.get(DESCRIPTOR)
-        if feats is None:
-            raise ConfigError(
-                f"shape {sample.name!r} has no {DESCRIPTOR!r} descriptor: add it to data.operators.request "
-                "(e.g. +data.operators.request={shot:{}}), or set model.descriptor_weight=0"
-            )
-        if feats.ndim != 2 or feats.shape[0] != sample.shape.n_verts:
-            raise ConfigError(f"{DESCRIPTOR} of {sample.name!r} has shape {tuple(feats.shape)}, expected (n, c)")
-        if not bool(torch.isfinite(feats).all()):
-            raise NumericalError(f"the {DESCRIPTOR} descriptor of {sample.name!r} contains NaN or infinite values")
-        feats = feats.to(torch.float32)
-        # Unit rows: the weight then sets the descriptor's share of the product-space distance.
-        return feats / feats.norm(dim=1, keepdim=True).clamp_min(torch.finfo(feats.dtype).tiny)
+        blocks = []
+        for name in self.descriptors:
+            feats = sample.features.get(name)
+            if feats is None:
+                raise ConfigError(
+                    f"shape {sample.name!r} has no {name!r} descriptor: add it to data.operators.request "
+                    f"(e.g. +data.operators.request={{{name}:{{}}}}), or set model.descriptor_weight=0"
+                )
+            if feats.ndim != 2 or feats.shape[0] != sample.shape.n_verts:
+                raise ConfigError(f"{name} of {sample.name!r} has shape {tuple(feats.shape)}, expected (n, c)")
+            if not bool(torch.isfinite(feats).all()):
+                raise NumericalError(f"the {name} descriptor of {sample.name!r} contains NaN or infinite values")
+            feats = feats.to(torch.float32)
+            # Unit rows: the weight then sets the descriptor's share of the product-space distance.
+            blocks.append(feats / feats.norm(dim=1, keepdim=True).clamp_min(torch.finfo(feats.dtype).tiny))
+        return torch.cat(blocks, dim=1) / float(np.sqrt(len(blocks)))
 
     def _flow(self, points: torch.Tensor, coeffs: torch.Tensor, return_path: bool = False) -> torch.Tensor:
         return df.integrate_flow(points, coeffs, self.n_steps, self.rule, return_path=return_path,
@@ -468,9 +492,9 @@ class DivFreeMatcher:
         """Misalignment of a placement at rest (lower is better).
 
         Every sample of either shape is paired with its nearest sample of the other in ``[xyz, w_n normals]``;
-        the score is the mean product-space distance ``|[xyz, w_n normals, w_s SHOT]|`` of these pairs (the first
-        level's weights). The descriptor term makes it intrinsic where the coordinates are not: a body turned front
-        to back overlaps itself in space, but its spatial pairs then disagree in SHOT.
+        the score is the mean product-space distance ``|[xyz, w_n normals, w_d descriptor]|`` of these pairs (the
+        first level's weights). The descriptor term makes it intrinsic where the coordinates are not: a body turned
+        front to back overlaps itself in space, but its spatial pairs then disagree in the descriptor.
         """
         level = self.levels[0]
         sx, sy = st["order_x"][:level.n_samples], st["order_y"][:level.n_samples]

@@ -22,9 +22,10 @@ from shapecorr.geometry.remeshing import remesh
 from shapecorr.geometry.shot_descriptor import shot
 
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "model" / "divfree.yaml"
-# A short schedule (two levels, few samples and steps) so that each fit takes a few seconds.
+# A short schedule (two levels, few samples and steps) so that each fit takes a few seconds; SHOT in the product
+# space (the small test surfaces carry SHOT, computed here, and no spectral descriptors).
 FAST = {"modes": (2, 4), "samples": 150, "iterations": (25, 25), "lr": (0.01, 0.005), "descriptor_weight": (0.2, 0.1),
-            "n_steps": 8, "corr_every": 5}
+        "n_steps": 8, "corr_every": 5, "descriptor": "shot"}
 
 # Exact-repeat checks below: one torch thread (parallel reductions may differ in the last bits across runs).
 pytestmark = pytest.mark.usefixtures("single_thread")
@@ -133,8 +134,10 @@ def test_config_has_published_defaults():
     assert (finest.n_modes, finest.n_samples, finest.iterations) == (8, 2000, 100)
     assert (matcher.n_steps, matcher.lambda_reg, matcher.knn, matcher.margin) == (16, 20.0, 5, 0.05)
     assert matcher.prealign == "smooth_shells"
-    assert matcher.required_operators == {"shot": {}, "eigenbasis": {"k": 509}}
-    assert DivFreeMatcher(prealign="pca").required_operators == {"shot": {}}
+    assert matcher.descriptors == ("wks",) and matcher.levels[0].descriptor_weight == 2.0
+    assert matcher.required_operators == {"wks": {}, "shot": {}, "eigenbasis": {"k": 509}}
+    assert DivFreeMatcher(prealign="pca").required_operators == {"wks": {}}
+    assert DivFreeMatcher(prealign="pca", descriptor="shot").required_operators == {"shot": {}}
 
 
 def test_bad_input(rigid_pair):
@@ -236,3 +239,26 @@ def test_rigid_icp_recovers_a_rigid_motion():
     r, _ = rigid_icp(x, nx, (x @ big.T)[perm], (nx @ big.T)[perm], iterations=3, features_x=feats,
                      features_y=feats[perm])
     torch.testing.assert_close(r, big, atol=1e-6, rtol=0)
+
+
+def test_descriptor_option():
+    """Several descriptors: each with unit rows, the block with unit rows; names and presence checked."""
+    v, f = _blob(300)
+    gen = torch.Generator().manual_seed(0)
+    shot_rows, wks = torch.rand(len(v), 12, generator=gen) + 0.1, torch.rand(len(v), 7, generator=gen) + 0.1
+    sample = ShapeSample(shape=make_shape(v, f, "x", normalization=None),
+                         operators={"shot": {"shot": shot_rows}, "wks": {"wks": wks}})
+    both = DivFreeMatcher(**{**FAST, "descriptor": ["shot", "wks"]}, prealign="none")
+    assert both.required_operators == {"shot": {}, "wks": {}}
+    assert DivFreeMatcher(**{**FAST, "descriptor": "wks"}, prealign="smooth_shells").required_operators.keys() == {
+        "wks", "shot", "eigenbasis"}
+    block = both._descriptor(sample)
+    assert block.shape == (len(v), 12 + 7)
+    torch.testing.assert_close(block.norm(dim=1), torch.ones(len(v)))
+    torch.testing.assert_close(block[:, -7:] * np.sqrt(2), wks / wks.norm(dim=1, keepdim=True))
+    with pytest.raises(ConfigError, match="descriptor"):
+        DivFreeMatcher(descriptor="sift")
+    with pytest.raises(ConfigError, match="descriptor"):
+        DivFreeMatcher(descriptor=["wks", "wks"])
+    with pytest.raises(ConfigError, match="hks"):
+        DivFreeMatcher(**{**FAST, "descriptor": "hks"}, prealign="none")._descriptor(sample)
