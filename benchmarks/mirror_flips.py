@@ -2,13 +2,15 @@
 
     python benchmarks/mirror_flips.py --faust-r DIR [--max-pairs 80 | --pairs 088-089,098-097,...]
         [--runs divfree divfree_noprealign smooth_shells ...] [--parallel 1] [--threads 1] [--device auto]
-        [--run-dir DIR] [--out FILE]
+        [--run-dir DIR] [--out FILE] [--no-launch]
 
 Each run is ``evaluate.py`` on the same FAUST_r test pairs (shapes 080-099): ``--max-pairs`` evenly spaced of the
 380 ordered pairs (evaluate.py's ``max_pairs`` order, 0: all 380), or the pairs named by ``--pairs`` (``xxx-yyy``,
 the numbers of ``tr_reg_xxx``). ``--parallel P`` splits the pairs into P interleaved parts run as P evaluate.py
 processes at once (each with ``--threads`` threads; on a GPU machine they share the device), into
-``RUN_DIR/<run>/part_<k>``; a run stopped early resumes where it stopped.
+``RUN_DIR/<run>/part_<k>``; a run stopped early resumes where it stopped. ``--no-launch`` runs nothing and only
+summarizes the pairs already evaluated under ``RUN_DIR/<run>/part_*`` (e.g. two runs on different pair sets whose
+``part_*`` folders were put side by side); it fails when one of the requested pairs is missing.
 
 Two medians are recorded: over the pairs (of the per-pair mean errors, ``median_geodesic_error``) and over all
 points of all pairs pooled (``median_point_error``, what evaluate.py's metrics.json calls
@@ -159,6 +161,8 @@ def main(argv=None) -> int:
     parser.add_argument("--device", default="auto", help="evaluate.py device (auto: cuda if available)")
     parser.add_argument("--run-dir", default=str(REPO / "outputs" / "bench" / "mirror_flips"))
     parser.add_argument("--out", default=str(RESULT))
+    parser.add_argument("--no-launch", action="store_true",
+                        help="run nothing; summarize the pairs already under RUN_DIR/<run>/part_*")
     args = parser.parse_args(argv)
     if not args.faust_r:
         parser.error("set --faust-r or SHAPECORR_FAUST_R to the FAUST_r folder")
@@ -170,10 +174,15 @@ def main(argv=None) -> int:
     for run in args.runs:
         folder = run_dir / run
         start = time.perf_counter()
-        launch(run, pairs, folder, args)
+        if not args.no_launch:
+            launch(run, pairs, folder, args)
         wanted = {f"{a[-3:]}-{b[-3:]}" for a, b in pairs}
         rows = [r for r in read_pairs(folder) if r["pair"] in wanted]
-        results[run] = {**summarize(rows), "wall_seconds": time.perf_counter() - start,
+        missing = sorted(wanted - {r["pair"] for r in rows})
+        if missing:
+            raise SystemExit(f"run {run}: {len(missing)} of {len(wanted)} pairs have no record under {folder} "
+                             f"(e.g. {missing[0]})")
+        results[run] = {**summarize(rows), "wall_seconds": None if args.no_launch else time.perf_counter() - start,
                         "overrides": RUNS[run] + args.override}
         s = results[run]
         print(f"{run}: {s['n_pairs']} pairs, mean {100 * s['mean_geodesic_error']:.2f} median over pairs "
