@@ -280,6 +280,67 @@ def _symmetric_product(left: torch.Tensor, right: torch.Tensor, blocks: int = 3)
     return out
 
 
+def _levi_civita() -> torch.Tensor:
+    """``(3, 3, 3)``: ``eps[i, j, d] = eps_ijd`` (+1 for the cyclic orders, -1 for the others, 0 else)."""
+    eps = torch.zeros(3, 3, 3)
+    for i, j, d in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        eps[i, j, d], eps[i, d, j] = 1.0, -1.0
+    return eps
+
+
+#: Levi-Civita symbol: ``v_i = sum_jd eps_ijd d_j Phi_d`` (the curl of the potentials).
+_EPS = _levi_civita()
+#: Flat index ``9 o_z + 3 o_y + o_x`` of the derivative orders of one potential derivative: first derivative
+#: ``d_j`` (``_ORDER_GRAD[j]``) and second derivative ``d_l d_j`` (``_ORDER_HESS[j, l]``).
+_ORDER_GRAD = [9 * (j == 2) + 3 * (j == 1) + (j == 0) for j in range(3)]
+_ORDER_HESS = [9 * ((j == 2) + (m == 2)) + 3 * ((j == 1) + (m == 1)) + (j == 0) + (m == 0)
+               for j in range(3) for m in range(3)]
+
+
+def _field_factors(points: torch.Tensor, n_modes: int) -> torch.Tensor:
+    """Per-coordinate factors of the potentials and their derivatives, ``(n, 3 orders, 3 axes, K)``.
+
+    Order 0, 1, 2 of axis m: ``sin(a pi x_m)``, ``a cos(a pi x_m)``, ``-a^2 sin(a pi x_m)`` (each derivative
+    without its factor pi, as :mod:`shapecorr.geometry.divergence_free` writes the fields).
+    """
+    k = torch.arange(1, n_modes + 1, dtype=points.dtype, device=points.device)
+    arg = points.unsqueeze(-1) * (math.pi * k)
+    sin = torch.sin(arg)
+    return torch.stack((sin, torch.cos(arg) * k, -sin * k**2), dim=1)
+
+
+def _potential_derivatives(factors: torch.Tensor, pot: torch.Tensor) -> torch.Tensor:
+    """Every mixed derivative of order <= 2 per axis of the potentials ``pot (S, 3, K, K, K)`` at the points.
+
+    Returns ``(n, S, 3 d, 27)``: entry ``9 o_z + 3 o_y + o_x`` is ``sum_abc pot[s, d, a, b, c] X^{o_x}_a
+    Y^{o_y}_b Z^{o_z}_c`` with the factors of :func:`_field_factors` (the derivative of ``Phi_d / pi`` of orders
+    ``(o_x, o_y, o_z)``, up to one factor pi per order above the first). Three batched products, one axis each.
+    """
+    n, k, s = factors.shape[0], factors.shape[-1], pot.shape[0]
+    t = factors[:, :, 2] @ pot.reshape(s * 3 * k * k, k).T  # (n, o_z, s d a b)
+    t = t.reshape(n, 3 * s * 3 * k, k) @ factors[:, :, 1].transpose(1, 2)  # (n, o_z s d a, o_y)
+    t = t.reshape(n, 3 * s * 3, k, 3).transpose(2, 3).reshape(n, 3 * s * 3 * 3, k)
+    t = t @ factors[:, :, 0].transpose(1, 2)  # (n, o_z s d o_y, o_x)
+    return t.reshape(n, 3, s, 3, 9).permute(0, 2, 3, 1, 4).reshape(n, s, 3, 27)
+
+
+def _basis_transpose(factors: torch.Tensor, w: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """``Psi^T w (F,)`` for per-point vectors ``w (n, 3)``, without the basis: ``sum_i w_i . v_f(x_i)``.
+
+    With ``v_f = s_f curl(psi_abc e_d)``: ``s_f sum_{i, j} (sum_c w_ic eps_cjd) d_j psi_abc(x_i)``, one product
+    over the points for the three derivative directions j.
+    """
+    n, k = factors.shape[0], factors.shape[-1]
+    skew = (w @ _EPS.to(w).reshape(3, 9)).reshape(n, 3, 3, 1)  # (n, j, d): sum_c w_c eps_cjd
+    # factors of d_j psi: order 1 along axis j, 0 along the others
+    fx = factors[:, (1, 0, 0), 0]  # (n, j, K)
+    fy = factors[:, (0, 1, 0), 1]
+    fz = factors[:, (0, 0, 1), 2]
+    t = (skew * fx.unsqueeze(2)).unsqueeze(-1) * fy[:, :, None, None, :]  # (n, j, d, a, b)
+    t = t.reshape(n * 3, 3 * k * k).T @ fz.reshape(n * 3, k)  # (d a b, c)
+    return t.reshape(3, k ** 3).T.reshape(-1) * scales
+
+
 class _StepSolve(torch.autograd.Function):
     """Step 3-4 of the module docstring with a hand-written backward.
 
@@ -289,9 +350,12 @@ class _StepSolve(torch.autograd.Function):
 
     Backward: the gradient of ``xi = S^-1 r`` with respect to S is the outer product ``-u xi^T`` (``u = S^-1 g``),
     so every gradient of the F x F system reduces to products of ``Psi`` with the two vectors ``u`` and ``xi``:
-    the cotangent of ``Psi_i`` is ``alpha_i u^T + beta_i xi^T`` (``alpha, beta (n, 3)``), pulled back to ``mid``
-    through :func:`shapecorr.geometry.divergence_free.velocity`. Nothing of size ``n x F`` is kept between
-    forward and backward (only the Cholesky factor), and the backward costs no ``n F^2`` product.
+    the cotangent of ``Psi_i`` is ``alpha_i u^T + beta_i xi^T`` (``alpha, beta (n, 3)``), whose pull-back to
+    ``mid`` is ``J_u(mid_i)^T alpha_i + J_xi(mid_i)^T beta_i`` with ``J_c`` the Jacobian of the field of
+    coefficients c: the second derivatives of the potentials, evaluated from the per-coordinate factors
+    (:func:`_potential_derivatives`), as are ``Psi^T grad_v`` and ``Psi u`` (:func:`_basis_transpose`). Nothing
+    of size ``n x F`` is kept between forward and backward (only the Cholesky factor), and the backward costs
+    no ``n F^2`` product.
     """
 
     @staticmethod
@@ -316,37 +380,38 @@ class _StepSolve(torch.autograd.Function):
         return xi, v
 
     @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx, grad_xi, grad_v):
         mid, frames, lam, rhs, xi, v, factor = ctx.saved_tensors
         graph, h, cfg, operator = ctx.graph, ctx.h, ctx.cfg, ctx.operator
-        n = mid.shape[0]
-        with torch.enable_grad():
-            m = mid.detach().requires_grad_(True)
-            probe = torch.zeros_like(xi, requires_grad=True)
-            # Psi^T grad_v: the field is linear in its coefficients.
-            g = grad_xi if grad_xi is not None else torch.zeros_like(xi)
-            if grad_v is not None:
-                (psi_t_grad,) = torch.autograd.grad((grad_v * df.velocity(m.detach(), probe, cfg.convention)).sum(),
-                                                    probe)
-                g = g + psi_t_grad
-            else:
-                grad_v = torch.zeros_like(v)
-            u = torch.cholesky_solve(g.double().unsqueeze(-1), factor).squeeze(-1).to(xi.dtype)
-            p_u = df.velocity(m, u, cfg.convention)  # Psi u
-            p_xi = df.velocity(m, xi, cfg.convention)  # Psi xi (= v)
-            p_u_d = p_u.detach()
-            # cotangent of Psi_i: alpha_i u^T + beta_i xi^T with alpha = rhs - G Psi xi, beta = grad_v - G Psi u
-            alpha = rhs - (operator @ v.reshape(3 * n, 1)).reshape(n, 3)
-            beta = grad_v - (operator @ p_u_d.reshape(3 * n, 1)).reshape(n, 3)
-            grad_mid = None
-            if ctx.needs_input_grad[0]:
-                (grad_mid,) = torch.autograd.grad((alpha * p_u).sum() + (beta * p_xi).sum(), m)
-        lap_a = _laplacian_apply((frames.transpose(1, 2) @ v.unsqueeze(-1)).squeeze(-1), graph)
-        lap_c = _laplacian_apply((frames.transpose(1, 2) @ p_u_d.unsqueeze(-1)).squeeze(-1), graph)
-        h2 = h * h
-        grad_frames = -h2 * (p_u_d.unsqueeze(-1) * lap_a.unsqueeze(-2) + v.unsqueeze(-1) * lap_c.unsqueeze(-2))
-        grad_lam = -(p_u_d * v).sum()
-        return grad_mid, grad_frames, grad_lam, p_u_d, None, None, None
+        n, k = mid.shape[0], cfg.n_modes
+        scales = df.basis_scales(k, cfg.convention, dtype=mid.dtype, device=mid.device)
+        factors = _field_factors(mid, k)
+        g = grad_xi if grad_xi is not None else torch.zeros_like(xi)
+        if grad_v is not None:
+            g = g + _basis_transpose(factors, grad_v, scales)  # Psi^T grad_v
+        else:
+            grad_v = torch.zeros_like(v)
+        u = torch.cholesky_solve(g.double().unsqueeze(-1), factor).squeeze(-1).to(xi.dtype)
+        # potentials of the two fields Psi u and Psi xi: (2, 3 d, K, K, K)
+        pot = (torch.stack((u, xi)) * scales).reshape(2, k, k, k, 3).permute(0, 4, 1, 2, 3)
+        deriv = _potential_derivatives(factors, pot)  # (n, 2, 3 d, 27)
+        eps_dj = _EPS.to(v).permute(0, 2, 1).reshape(3, 9)  # [i, (d, j)]
+        p_u = deriv[:, 0][:, :, _ORDER_GRAD].reshape(n, 9) @ eps_dj.T  # Psi u: the curl of the gradient
+        # cotangent of Psi_i: alpha_i u^T + beta_i xi^T with alpha = rhs - G Psi xi, beta = grad_v - G Psi u
+        both = (operator @ torch.stack((v, p_u), dim=-1).reshape(3 * n, 2)).reshape(n, 3, 2)
+        weights = torch.stack((rhs - both[..., 0], grad_v - both[..., 1]), dim=1)  # (n, 2, 3)
+        grad_mid = None
+        if ctx.needs_input_grad[0]:
+            # sum_i w_i d_l v_i = pi sum_{j, d} (sum_i w_i eps_ijd) d_l d_j Phi_d, both fields at once
+            skew = (weights @ eps_dj).reshape(n, 1, 18)  # (s, d, j)
+            hess = deriv[:, :, :, _ORDER_HESS].reshape(n, 18, 3)  # (s, d, j), l
+            grad_mid = math.pi * (skew @ hess).reshape(n, 3)
+        rotated = frames.transpose(1, 2) @ torch.stack((v, p_u), dim=-1)  # (n, 3, 2): R'^T v, R'^T Psi u
+        lap = _laplacian_apply(rotated, graph)
+        grad_frames = (-h * h) * (torch.stack((p_u, v), dim=-1) @ lap.transpose(1, 2))
+        grad_lam = -(p_u * v).sum()
+        return grad_mid, grad_frames, grad_lam, p_u, None, None, None
 
 
 def _solve_step(mid: torch.Tensor, v_pred: torch.Tensor, force: torch.Tensor, frames: torch.Tensor, graph: _Graph,
