@@ -34,6 +34,7 @@ Pure torch (CPU or GPU); written by hand: no library implements this scheme.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 import warnings
@@ -46,7 +47,7 @@ from shapecorr.axiomatic.divfree import ARAP_NORMALIZATION, PUBLISHED_KNN, PUBLI
 from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.geometry import divergence_free as df
 from shapecorr.geometry.sampling import farthest_point_sampling
-from shapecorr.losses.arap import arap_rotations, edge_vectors
+from shapecorr.losses.arap import edge_vectors, rotations_from_covariances
 from shapecorr.matching.baselines import LinearBlend
 from shapecorr.matching.result import MatchResult
 
@@ -187,6 +188,11 @@ class _Graph:
     #: Sparsity pattern of the block matrix of :func:`_dynamics_operator`, per sample count (built once).
     patterns: dict = field(default_factory=dict, compare=False, repr=False)
 
+    @functools.cached_property
+    def weighted_rest(self) -> torch.Tensor:
+        """``c_e e(x_0)`` (E, 3): the rest edges weighted for the ARAP covariances."""
+        return self.rest * self.weights.to(self.rest).unsqueeze(-1)
+
     def block_pattern(self, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """CSR layout of a ``(3n, 3n)`` matrix of 3x3 blocks on the diagonal and at ``(a, b)``, ``(b, a)``.
 
@@ -219,6 +225,10 @@ def _laplacian_apply(q: torch.Tensor, graph: _Graph) -> torch.Tensor:
 def _force(x: torch.Tensor, x_pred: torch.Tensor, x0: torch.Tensor, graph: _Graph, aniso: torch.Tensor):
     """Anisotropic ARAP force at ``x`` with rotations of the predicted pose (module docstring, step 2).
 
+    The rotations are those of :func:`shapecorr.losses.arap.arap_rotations` (the same covariances, bitwise: the
+    weights are edge multiplicities, 1 or 2, so weighting the rest edges first is exact), without its checks of
+    the fixed graph at every step.
+
     Returns
     -------
     force : (n, 3)
@@ -227,14 +237,18 @@ def _force(x: torch.Tensor, x_pred: torch.Tensor, x0: torch.Tensor, graph: _Grap
     frames : (n, 3, 3)
         ``R'_i = R_i A_i^T``.
     """
-    rot = arap_rotations(x0, x_pred, graph.edges, graph.weights, differentiable=True)
-    rot_edge = 0.5 * (rot[graph.edges[:, 0]] + rot[graph.edges[:, 1]])
+    n, a, b = x.shape[0], graph.edges[:, 0], graph.edges[:, 1]
+    edge_pred = x_pred.index_select(0, b) - x_pred.index_select(0, a)
+    outer = (edge_pred.unsqueeze(-1) * graph.weighted_rest.unsqueeze(-2)).reshape(-1, 9)
+    cov = x.new_zeros(n, 9).index_add(0, a, outer).index_add(0, b, outer)
+    rot = rotations_from_covariances(cov.reshape(n, 3, 3), differentiable=True)
+    rot_edge = 0.5 * (rot.index_select(0, a) + rot.index_select(0, b))
     rest_rotated = (rot_edge @ graph.rest.unsqueeze(-1)).squeeze(-1)
     residual = edge_vectors(x, graph.edges) - rest_rotated
     frames = rot @ aniso.transpose(1, 2)
-    frame_edge = 0.5 * (frames[graph.edges[:, 0]] + frames[graph.edges[:, 1]])
+    frame_edge = 0.5 * (frames.index_select(0, a) + frames.index_select(0, b))
     back = (frame_edge.transpose(1, 2) @ residual.unsqueeze(-1)).squeeze(-1) * graph.weights.unsqueeze(-1)
-    summed = torch.zeros_like(x).index_add(0, graph.edges[:, 0], back).index_add(0, graph.edges[:, 1], -back)
+    summed = torch.zeros_like(x).index_add(0, a, back).index_add(0, b, -back)
     force = (frames @ summed.unsqueeze(-1)).squeeze(-1)
     return force, rest_rotated, frames
 
@@ -261,23 +275,23 @@ def _dynamics_operator(frames: torch.Tensor, lam: torch.Tensor, h: float, graph:
         return torch.sparse_csr_tensor(crow, col, values, (3 * n, 3 * n), check_invariants=False)
 
 
-def _symmetric_product(left: torch.Tensor, right: torch.Tensor, blocks: int = 3) -> torch.Tensor:
-    """``left^T right (F, F)`` for ``(m, F)`` matrices whose product is symmetric.
+def _system_product(psi: torch.Tensor, product: torch.Tensor, k: int) -> torch.Tensor:
+    """``psi^T product (F, F)`` for direction-major ``(n, 3, F)`` matrices whose product is symmetric.
 
-    Only the blocks on and above the diagonal are multiplied (``(blocks + 1) / (2 blocks)`` of the full
-    product's work); the others are their transposes, so the result is exactly symmetric.
+    ``psi`` is the basis of :func:`_direction_major_basis` (rows ``(i, d)``, columns ``(e, abc)``), which is
+    zero where ``d = e``: block row e of the product sums over the two rows ``d != e`` only, and only the blocks
+    on and below the diagonal are multiplied (2/3 of the full product's work times 2/3); the others are their
+    transposes, so the result is exactly symmetric.
     """
-    f = left.shape[1]
-    bounds = [f * i // blocks for i in range(blocks + 1)]
-    out = left.new_empty(f, f)
-    for i in range(blocks):
-        rows = slice(bounds[i], bounds[i + 1])
-        for j in range(i, blocks):
-            cols = slice(bounds[j], bounds[j + 1])
-            out[rows, cols] = left[:, rows].T @ right[:, cols]
-            if j > i:
-                out[cols, rows] = out[rows, cols].T
-    return out
+    m = k ** 3
+    out = psi.new_empty(3 * m, 3 * m)
+    for e in range(3):
+        rows, cols = slice(e * m, (e + 1) * m), slice(0, (e + 1) * m)
+        d1, d2 = [d for d in range(3) if d != e]
+        block = psi[:, d1, rows].T @ product[:, d1, cols]
+        out[rows, cols] = block.addmm_(psi[:, d2, rows].T, product[:, d2, cols])
+    lower = out.tril()
+    return lower + lower.tril(-1).mT
 
 
 def _levi_civita() -> torch.Tensor:
@@ -327,6 +341,8 @@ def _potential_derivatives(factors: torch.Tensor, pot: torch.Tensor) -> torch.Te
 def _basis_transpose(factors: torch.Tensor, w: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     """``Psi^T w (F,)`` for per-point vectors ``w (n, 3)``, without the basis: ``sum_i w_i . v_f(x_i)``.
 
+    Fields direction-major (``scales`` of :func:`_direction_major_scales`).
+
     With ``v_f = s_f curl(psi_abc e_d)``: ``s_f sum_{i, j} (sum_c w_ic eps_cjd) d_j psi_abc(x_i)``, one product
     over the points for the three derivative directions j.
     """
@@ -338,7 +354,45 @@ def _basis_transpose(factors: torch.Tensor, w: torch.Tensor, scales: torch.Tenso
     fz = factors[:, (0, 0, 1), 2]
     t = (skew * fx.unsqueeze(2)).unsqueeze(-1) * fy[:, :, None, None, :]  # (n, j, d, a, b)
     t = t.reshape(n * 3, 3 * k * k).T @ fz.reshape(n * 3, k)  # (d a b, c)
-    return t.reshape(3, k ** 3).T.reshape(-1) * scales
+    return t.reshape(-1) * scales
+
+
+@functools.lru_cache(maxsize=8)
+def _direction_major_scales(k: int, convention: str, dtype: torch.dtype, device: torch.device):
+    """Scales of the fields in direction-major order and the signed table of the basis assembly.
+
+    Returns ``scales (3 K^3,)`` (field ``(e, abc)``: ``s_{abc, e}``), ``signed (9, K^3)`` (row ``(d, e)``:
+    ``eps_dje s_{abc, e}`` with j the third direction, 0 where d = e) and ``j_of (9,)`` (that j).
+    """
+    scales = df.basis_scales(k, convention, dtype=dtype, device=device).reshape(k ** 3, 3).T.contiguous()
+    eps = _EPS.to(dtype=dtype, device=device)
+    j_of = torch.tensor([(3 - d - e) % 3 for d in range(3) for e in range(3)], device=device)
+    signed = eps[torch.arange(3, device=device).repeat_interleave(3), j_of, torch.arange(3, device=device).repeat(3)]
+    return scales.reshape(-1), signed[:, None] * scales.repeat(3, 1), j_of
+
+
+def _direction_major_basis(factors: torch.Tensor, k: int, convention: str) -> torch.Tensor:
+    """The basis at the points of ``factors`` (:func:`_field_factors`), ``(n, 3 d, 3 K^3)``, fields direction-major.
+
+    Entry ``(i, d, (e, abc))`` is component d of the field ``(abc, e)`` (field ``abc * 3 + e`` of
+    :func:`shapecorr.geometry.divergence_free.basis_fields`, the same products, bitwise): ``eps_dje s_{abc,e}
+    d_j psi_abc(x_i)``, zero for ``d = e``.
+    """
+    n = factors.shape[0]
+    _, signed, j_of = _direction_major_scales(k, convention, factors.dtype, factors.device)
+    fx, fy, fz = factors[:, (1, 0, 0), 0], factors[:, (0, 1, 0), 1], factors[:, (0, 0, 1), 2]  # (n, j, K)
+    grad = ((fx[:, :, :, None] * fy[:, :, None, :]).reshape(n, 3, k * k, 1) * fz[:, :, None, :]).reshape(n, 3, -1)
+    return (grad[:, j_of] * signed).reshape(n, 3, 3 * k ** 3)
+
+
+def _to_direction_major(coeffs: torch.Tensor, k: int) -> torch.Tensor:
+    """Field order ``abc * 3 + e`` -> direction-major ``e * K^3 + abc`` (``(..., 3 K^3)``)."""
+    return coeffs.reshape(*coeffs.shape[:-1], k ** 3, 3).transpose(-1, -2).reshape(*coeffs.shape[:-1], -1)
+
+
+def _to_field_order(coeffs: torch.Tensor, k: int) -> torch.Tensor:
+    """Direction-major -> the field order of :mod:`shapecorr.geometry.divergence_free`."""
+    return coeffs.reshape(*coeffs.shape[:-1], 3, k ** 3).transpose(-1, -2).reshape(*coeffs.shape[:-1], -1)
 
 
 class _StepSolve(torch.autograd.Function):
@@ -360,41 +414,42 @@ class _StepSolve(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, mid, frames, lam, rhs, graph, h, cfg):
-        psi = df.basis_fields(mid, cfg.n_modes, cfg.convention)  # (n, F, 3)
-        n, f = psi.shape[0], psi.shape[1]
-        psi = psi.transpose(1, 2).reshape(3 * n, f)  # rows (i, d)
+        n, k = mid.shape[0], cfg.n_modes
+        factors = _field_factors(mid, k)
+        psi = _direction_major_basis(factors, k, cfg.convention)  # (n, 3, F), rows (i, d)
         operator = _dynamics_operator(frames, lam, h, graph)
-        system = _symmetric_product(psi, operator @ psi).double()
+        product = (operator @ psi.reshape(3 * n, -1)).reshape(n, 3, -1)
+        system = _system_product(psi, product, k).double()
         system.diagonal().add_(cfg.ridge)
         factor, info = torch.linalg.cholesky_ex(system)
         if int(info) != 0:
             raise NumericalError("hamiltonian: the per-step system is not positive definite; lower lr or check "
                                  "the inputs")
+        psi = psi.reshape(3 * n, -1)
         r = psi.T @ rhs.reshape(3 * n)
-        xi = torch.cholesky_solve(r.double().unsqueeze(-1), factor).squeeze(-1).to(mid.dtype)
+        xi = torch.cholesky_solve(r.double().unsqueeze(-1), factor).squeeze(-1).to(mid.dtype)  # direction-major
         if not bool(torch.isfinite(xi).all()):
             raise NumericalError("hamiltonian: the per-step linear solve gave NaN/Inf; lower lr or check the inputs")
         v = (psi @ xi).reshape(n, 3)
-        ctx.save_for_backward(mid, frames, lam, rhs, xi, v, factor)
+        ctx.save_for_backward(frames, rhs, xi, v, factor, factors)
         ctx.graph, ctx.h, ctx.cfg, ctx.operator = graph, h, cfg, operator
-        return xi, v
+        return _to_field_order(xi, k), v
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_xi, grad_v):
-        mid, frames, lam, rhs, xi, v, factor = ctx.saved_tensors
+        frames, rhs, xi, v, factor, factors = ctx.saved_tensors
         graph, h, cfg, operator = ctx.graph, ctx.h, ctx.cfg, ctx.operator
-        n, k = mid.shape[0], cfg.n_modes
-        scales = df.basis_scales(k, cfg.convention, dtype=mid.dtype, device=mid.device)
-        factors = _field_factors(mid, k)
-        g = grad_xi if grad_xi is not None else torch.zeros_like(xi)
+        n, k = v.shape[0], cfg.n_modes
+        scales = _direction_major_scales(k, cfg.convention, v.dtype, v.device)[0]
+        g = _to_direction_major(grad_xi, k) if grad_xi is not None else torch.zeros_like(xi)
         if grad_v is not None:
             g = g + _basis_transpose(factors, grad_v, scales)  # Psi^T grad_v
         else:
             grad_v = torch.zeros_like(v)
         u = torch.cholesky_solve(g.double().unsqueeze(-1), factor).squeeze(-1).to(xi.dtype)
         # potentials of the two fields Psi u and Psi xi: (2, 3 d, K, K, K)
-        pot = (torch.stack((u, xi)) * scales).reshape(2, k, k, k, 3).permute(0, 4, 1, 2, 3)
+        pot = (torch.stack((u, xi)) * scales).reshape(2, 3, k, k, k)
         deriv = _potential_derivatives(factors, pot)  # (n, 2, 3 d, 27)
         eps_dj = _EPS.to(v).permute(0, 2, 1).reshape(3, 9)  # [i, (d, j)]
         p_u = deriv[:, 0][:, :, _ORDER_GRAD].reshape(n, 9) @ eps_dj.T  # Psi u: the curl of the gradient
