@@ -185,8 +185,17 @@ class _Graph:
     edges: torch.Tensor  # (E, 2) int64
     weights: torch.Tensor  # (E,) float
     rest: torch.Tensor  # (E, 3) x_0[b] - x_0[a]
-    #: Sparsity pattern of the block matrix of :func:`_dynamics_operator`, per sample count (built once).
+    #: Sparsity pattern of the block matrix of :func:`_dynamics_operator` and the degrees, per sample count (built
+    #: once).
     patterns: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def degree(self, n: int) -> torch.Tensor:
+        """Weighted degree ``d_i = sum_{e ∋ i} c_e`` of the n samples (n,), built once."""
+        if ("degree", n) not in self.patterns:
+            w = self.weights
+            self.patterns[("degree", n)] = w.new_zeros(n).index_add(0, self.edges[:, 0], w).index_add(
+                0, self.edges[:, 1], w)
+        return self.patterns[("degree", n)]
 
     @functools.cached_property
     def weighted_rest(self) -> torch.Tensor:
@@ -261,13 +270,12 @@ def _dynamics_operator(frames: torch.Tensor, lam: torch.Tensor, h: float, graph:
     step 3 and ``(G v)_i = lambda' v_i + h^2 R'_i (H (R'^T v))_i`` for ``v (n, 3)``.
     """
     n = frames.shape[0]
-    a, b = graph.edges[:, 0], graph.edges[:, 1]
-    weights = graph.weights.to(frames)
-    degree = torch.zeros(n, dtype=frames.dtype, device=frames.device).index_add(0, a, weights).index_add(0, b, weights)
+    weights, degree = graph.weights.to(frames), graph.degree(n).to(frames)
     h2 = h * h
     eye = torch.eye(3, dtype=frames.dtype, device=frames.device)
     diag = lam * eye + (h2 * degree)[:, None, None] * (frames @ frames.transpose(1, 2))
-    off = (-h2 * weights)[:, None, None] * (frames[a] @ frames[b].transpose(1, 2))
+    off = (-h2 * weights)[:, None, None] * (frames.index_select(0, graph.edges[:, 0])
+                                            @ frames.index_select(0, graph.edges[:, 1]).transpose(1, 2))
     crow, col, perm = graph.block_pattern(n)
     values = torch.cat([diag, off, off.transpose(1, 2)]).reshape(-1)[perm]
     with warnings.catch_warnings():
@@ -357,18 +365,22 @@ def _basis_transpose(factors: torch.Tensor, w: torch.Tensor, scales: torch.Tenso
     return t.reshape(-1) * scales
 
 
+#: Per row ``(d, e)`` of the direction-major basis: the derivative direction j of ``eps_dje`` (the third index; j = d
+#: on the zero rows d = e).
+_THIRD = tuple((3 - d - e) % 3 for d in range(3) for e in range(3))
+
+
 @functools.lru_cache(maxsize=8)
 def _direction_major_scales(k: int, convention: str, dtype: torch.dtype, device: torch.device):
     """Scales of the fields in direction-major order and the signed table of the basis assembly.
 
-    Returns ``scales (3 K^3,)`` (field ``(e, abc)``: ``s_{abc, e}``), ``signed (9, K^3)`` (row ``(d, e)``:
-    ``eps_dje s_{abc, e}`` with j the third direction, 0 where d = e) and ``j_of (9,)`` (that j).
+    Returns ``scales (3 K^3,)`` (field ``(e, abc)``: ``s_{abc, e}``) and ``signed (9, K^3)`` (row ``(d, e)``:
+    ``eps_dje s_{abc, e}`` with j = ``_THIRD[3 d + e]``, 0 where d = e).
     """
     scales = df.basis_scales(k, convention, dtype=dtype, device=device).reshape(k ** 3, 3).T.contiguous()
     eps = _EPS.to(dtype=dtype, device=device)
-    j_of = torch.tensor([(3 - d - e) % 3 for d in range(3) for e in range(3)], device=device)
-    signed = eps[torch.arange(3, device=device).repeat_interleave(3), j_of, torch.arange(3, device=device).repeat(3)]
-    return scales.reshape(-1), signed[:, None] * scales.repeat(3, 1), j_of
+    sign = torch.stack([eps[d, _THIRD[3 * d + e], e] for d in range(3) for e in range(3)])
+    return scales.reshape(-1), sign[:, None] * scales.repeat(3, 1)
 
 
 def _direction_major_basis(factors: torch.Tensor, k: int, convention: str) -> torch.Tensor:
@@ -376,13 +388,19 @@ def _direction_major_basis(factors: torch.Tensor, k: int, convention: str) -> to
 
     Entry ``(i, d, (e, abc))`` is component d of the field ``(abc, e)`` (field ``abc * 3 + e`` of
     :func:`shapecorr.geometry.divergence_free.basis_fields`, the same products, bitwise): ``eps_dje s_{abc,e}
-    d_j psi_abc(x_i)``, zero for ``d = e``.
+    d_j psi_abc(x_i)``, zero for ``d = e``. Each of the nine ``(n, K^3)`` blocks is written in place.
     """
     n = factors.shape[0]
-    _, signed, j_of = _direction_major_scales(k, convention, factors.dtype, factors.device)
+    _, signed = _direction_major_scales(k, convention, factors.dtype, factors.device)
     fx, fy, fz = factors[:, (1, 0, 0), 0], factors[:, (0, 1, 0), 1], factors[:, (0, 0, 1), 2]  # (n, j, K)
     grad = ((fx[:, :, :, None] * fy[:, :, None, :]).reshape(n, 3, k * k, 1) * fz[:, :, None, :]).reshape(n, 3, -1)
-    return (grad[:, j_of] * signed).reshape(n, 3, 3 * k ** 3)
+    out = factors.new_empty(n, 9, k ** 3)
+    for row, j in enumerate(_THIRD):
+        if row % 4 == 0:  # d = e
+            out[:, row].zero_()
+        else:
+            torch.mul(grad[:, j], signed[row], out=out[:, row])
+    return out.reshape(n, 3, 3 * k ** 3)
 
 
 def _to_direction_major(coeffs: torch.Tensor, k: int) -> torch.Tensor:
