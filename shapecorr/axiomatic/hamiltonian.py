@@ -227,7 +227,7 @@ def _laplacian_apply(q: torch.Tensor, graph: _Graph) -> torch.Tensor:
     """``H q`` for the weighted graph Laplacian H (``(H q)_a = sum_e c_e (q_a - q_b)``) of ``q (n, ...)``."""
     a, b = graph.edges[:, 0], graph.edges[:, 1]
     w = graph.weights.view(-1, *([1] * (q.ndim - 1))).to(q)
-    diff = w * (q[a] - q[b])
+    diff = w * (q.index_select(0, a) - q.index_select(0, b))
     return torch.zeros_like(q).index_add(0, a, diff).index_add(0, b, -diff)
 
 
@@ -277,7 +277,7 @@ def _dynamics_operator(frames: torch.Tensor, lam: torch.Tensor, h: float, graph:
     off = (-h2 * weights)[:, None, None] * (frames.index_select(0, graph.edges[:, 0])
                                             @ frames.index_select(0, graph.edges[:, 1]).transpose(1, 2))
     crow, col, perm = graph.block_pattern(n)
-    values = torch.cat([diag, off, off.transpose(1, 2)]).reshape(-1)[perm]
+    values = torch.cat([diag, off, off.transpose(1, 2)]).reshape(-1).index_select(0, perm)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
         return torch.sparse_csr_tensor(crow, col, values, (3 * n, 3 * n), check_invariants=False)
@@ -314,9 +314,17 @@ def _levi_civita() -> torch.Tensor:
 _EPS = _levi_civita()
 #: Flat index ``9 o_z + 3 o_y + o_x`` of the derivative orders of one potential derivative: first derivative
 #: ``d_j`` (``_ORDER_GRAD[j]``) and second derivative ``d_l d_j`` (``_ORDER_HESS[j, l]``).
-_ORDER_GRAD = [9 * (j == 2) + 3 * (j == 1) + (j == 0) for j in range(3)]
-_ORDER_HESS = [9 * ((j == 2) + (m == 2)) + 3 * ((j == 1) + (m == 1)) + (j == 0) + (m == 0)
-               for j in range(3) for m in range(3)]
+_ORDER_GRAD = torch.tensor([9 * (j == 2) + 3 * (j == 1) + (j == 0) for j in range(3)])
+_ORDER_HESS = torch.tensor([9 * ((j == 2) + (m == 2)) + 3 * ((j == 1) + (m == 1)) + (j == 0) + (m == 0)
+                            for j in range(3) for m in range(3)])
+#: Order (0 or 1) of the factor of axis m in the first derivative ``d_j psi``: ``_ORDER_AXIS[m][j] = (j == m)``.
+_ORDER_AXIS = torch.eye(3, dtype=torch.int64)
+
+
+def _gradient_factors(factors: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The factors of ``d_j psi_abc`` for j = 0, 1, 2 along x, y and z, each ``(n, 3 j, K)``."""
+    orders = _ORDER_AXIS.to(factors.device)
+    return tuple(factors[:, :, m].index_select(1, orders[m]) for m in range(3))
 
 
 def _field_factors(points: torch.Tensor, n_modes: int) -> torch.Tensor:
@@ -357,9 +365,7 @@ def _basis_transpose(factors: torch.Tensor, w: torch.Tensor, scales: torch.Tenso
     n, k = factors.shape[0], factors.shape[-1]
     skew = (w @ _EPS.to(w).reshape(3, 9)).reshape(n, 3, 3, 1)  # (n, j, d): sum_c w_c eps_cjd
     # factors of d_j psi: order 1 along axis j, 0 along the others
-    fx = factors[:, (1, 0, 0), 0]  # (n, j, K)
-    fy = factors[:, (0, 1, 0), 1]
-    fz = factors[:, (0, 0, 1), 2]
+    fx, fy, fz = _gradient_factors(factors)  # (n, j, K)
     t = (skew * fx.unsqueeze(2)).unsqueeze(-1) * fy[:, :, None, None, :]  # (n, j, d, a, b)
     t = t.reshape(n * 3, 3 * k * k).T @ fz.reshape(n * 3, k)  # (d a b, c)
     return t.reshape(-1) * scales
@@ -392,14 +398,11 @@ def _direction_major_basis(factors: torch.Tensor, k: int, convention: str) -> to
     """
     n = factors.shape[0]
     _, signed = _direction_major_scales(k, convention, factors.dtype, factors.device)
-    fx, fy, fz = factors[:, (1, 0, 0), 0], factors[:, (0, 1, 0), 1], factors[:, (0, 0, 1), 2]  # (n, j, K)
+    fx, fy, fz = _gradient_factors(factors)  # (n, j, K)
     grad = ((fx[:, :, :, None] * fy[:, :, None, :]).reshape(n, 3, k * k, 1) * fz[:, :, None, :]).reshape(n, 3, -1)
     out = factors.new_empty(n, 9, k ** 3)
-    for row, j in enumerate(_THIRD):
-        if row % 4 == 0:  # d = e
-            out[:, row].zero_()
-        else:
-            torch.mul(grad[:, j], signed[row], out=out[:, row])
+    for row, j in enumerate(_THIRD):  # rows d = e: signed is 0 there
+        torch.mul(grad[:, j], signed[row], out=out[:, row])
     return out.reshape(n, 3, 3 * k ** 3)
 
 
@@ -436,7 +439,11 @@ class _StepSolve(torch.autograd.Function):
         factors = _field_factors(mid, k)
         psi = _direction_major_basis(factors, k, cfg.convention)  # (n, 3, F), rows (i, d)
         operator = _dynamics_operator(frames, lam, h, graph)
-        product = (operator @ psi.reshape(3 * n, -1)).reshape(n, 3, -1)
+        # G Psi into a fresh buffer: beta = 0 ignores its contents (the plain sparse product zero-fills a
+        # temporary and copies it, three times the work at these sizes)
+        product = psi.new_empty(3 * n, psi.shape[-1])
+        torch.addmm(product, operator, psi.reshape(3 * n, -1), beta=0, out=product)
+        product = product.reshape(n, 3, -1)
         system = _system_product(psi, product, k).double()
         system.diagonal().add_(cfg.ridge)
         factor, info = torch.linalg.cholesky_ex(system)
@@ -470,7 +477,8 @@ class _StepSolve(torch.autograd.Function):
         pot = (torch.stack((u, xi)) * scales).reshape(2, 3, k, k, k)
         deriv = _potential_derivatives(factors, pot)  # (n, 2, 3 d, 27)
         eps_dj = _EPS.to(v).permute(0, 2, 1).reshape(3, 9)  # [i, (d, j)]
-        p_u = deriv[:, 0][:, :, _ORDER_GRAD].reshape(n, 9) @ eps_dj.T  # Psi u: the curl of the gradient
+        # Psi u: the curl of the gradient
+        p_u = deriv[:, 0].index_select(-1, _ORDER_GRAD.to(v.device)).reshape(n, 9) @ eps_dj.T
         # cotangent of Psi_i: alpha_i u^T + beta_i xi^T with alpha = rhs - G Psi xi, beta = grad_v - G Psi u
         both = (operator @ torch.stack((v, p_u), dim=-1).reshape(3 * n, 2)).reshape(n, 3, 2)
         weights = torch.stack((rhs - both[..., 0], grad_v - both[..., 1]), dim=1)  # (n, 2, 3)
@@ -478,7 +486,7 @@ class _StepSolve(torch.autograd.Function):
         if ctx.needs_input_grad[0]:
             # sum_i w_i d_l v_i = pi sum_{j, d} (sum_i w_i eps_ijd) d_l d_j Phi_d, both fields at once
             skew = (weights @ eps_dj).reshape(n, 1, 18)  # (s, d, j)
-            hess = deriv[:, :, :, _ORDER_HESS].reshape(n, 18, 3)  # (s, d, j), l
+            hess = deriv.index_select(-1, _ORDER_HESS.to(v.device)).reshape(n, 18, 3)  # (s, d, j), l
             grad_mid = math.pi * (skew @ hess).reshape(n, 3)
         rotated = frames.transpose(1, 2) @ torch.stack((v, p_u), dim=-1)  # (n, 3, 2): R'^T v, R'^T Psi u
         lap = _laplacian_apply(rotated, graph)
