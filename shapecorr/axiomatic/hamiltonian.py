@@ -289,7 +289,8 @@ def _system_product(psi: torch.Tensor, product: torch.Tensor, k: int) -> torch.T
     ``psi`` is the basis of :func:`_direction_major_basis` (rows ``(i, d)``, columns ``(e, abc)``), which is
     zero where ``d = e``: block row e of the product sums over the two rows ``d != e`` only, and only the blocks
     on and below the diagonal are multiplied (2/3 of the full product's work times 2/3); the others are their
-    transposes, so the result is exactly symmetric.
+    transposes. (The diagonal blocks are symmetric up to round-off; the Cholesky factorization reads the lower
+    triangle.)
     """
     m = k ** 3
     out = psi.new_empty(3 * m, 3 * m)
@@ -298,8 +299,9 @@ def _system_product(psi: torch.Tensor, product: torch.Tensor, k: int) -> torch.T
         d1, d2 = [d for d in range(3) if d != e]
         block = psi[:, d1, rows].T @ product[:, d1, cols]
         out[rows, cols] = block.addmm_(psi[:, d2, rows].T, product[:, d2, cols])
-    lower = out.tril()
-    return lower + lower.tril(-1).mT
+        for e2 in range(e):
+            out[e2 * m:(e2 + 1) * m, rows] = out[rows, e2 * m:(e2 + 1) * m].T
+    return out
 
 
 def _levi_civita() -> torch.Tensor:
@@ -312,11 +314,6 @@ def _levi_civita() -> torch.Tensor:
 
 #: Levi-Civita symbol: ``v_i = sum_jd eps_ijd d_j Phi_d`` (the curl of the potentials).
 _EPS = _levi_civita()
-#: Flat index ``9 o_z + 3 o_y + o_x`` of the derivative orders of one potential derivative: first derivative
-#: ``d_j`` (``_ORDER_GRAD[j]``) and second derivative ``d_l d_j`` (``_ORDER_HESS[j, l]``).
-_ORDER_GRAD = torch.tensor([9 * (j == 2) + 3 * (j == 1) + (j == 0) for j in range(3)])
-_ORDER_HESS = torch.tensor([9 * ((j == 2) + (m == 2)) + 3 * ((j == 1) + (m == 1)) + (j == 0) + (m == 0)
-                            for j in range(3) for m in range(3)])
 #: Order (0 or 1) of the factor of axis m in the first derivative ``d_j psi``: ``_ORDER_AXIS[m][j] = (j == m)``.
 _ORDER_AXIS = torch.eye(3, dtype=torch.int64)
 
@@ -342,16 +339,34 @@ def _field_factors(points: torch.Tensor, n_modes: int) -> torch.Tensor:
 def _potential_derivatives(factors: torch.Tensor, pot: torch.Tensor) -> torch.Tensor:
     """Every mixed derivative of order <= 2 per axis of the potentials ``pot (S, 3, K, K, K)`` at the points.
 
-    Returns ``(n, S, 3 d, 27)``: entry ``9 o_z + 3 o_y + o_x`` is ``sum_abc pot[s, d, a, b, c] X^{o_x}_a
-    Y^{o_y}_b Z^{o_z}_c`` with the factors of :func:`_field_factors` (the derivative of ``Phi_d / pi`` of orders
-    ``(o_x, o_y, o_z)``, up to one factor pi per order above the first). Three batched products, one axis each.
+    Returns ``(n, 3 o_y, 3 o_z, S, 3 d, 3 o_x)``, flattened to ``(n, 81 S)``: ``sum_abc pot[s, d, a, b, c]
+    X^{o_x}_a Y^{o_y}_b Z^{o_z}_c`` with the factors of :func:`_field_factors` (the derivative of ``Phi_d / pi``
+    of orders ``(o_x, o_y, o_z)``, up to one factor pi per order above the first). Three batched products, one
+    axis each, laid out so that no intermediate is copied; :func:`_derivative_index` picks entries.
     """
     n, k, s = factors.shape[0], factors.shape[-1], pot.shape[0]
     t = factors[:, :, 2] @ pot.reshape(s * 3 * k * k, k).T  # (n, o_z, s d a b)
-    t = t.reshape(n, 3 * s * 3 * k, k) @ factors[:, :, 1].transpose(1, 2)  # (n, o_z s d a, o_y)
-    t = t.reshape(n, 3 * s * 3, k, 3).transpose(2, 3).reshape(n, 3 * s * 3 * 3, k)
-    t = t @ factors[:, :, 0].transpose(1, 2)  # (n, o_z s d o_y, o_x)
-    return t.reshape(n, 3, s, 3, 9).permute(0, 2, 3, 1, 4).reshape(n, s, 3, 27)
+    t = factors[:, :, 1] @ t.reshape(n, 3 * s * 3 * k, k).transpose(1, 2)  # (n, o_y, o_z s d a)
+    t = t.reshape(n, 3 * 3 * s * 3, k) @ factors[:, :, 0].transpose(1, 2)  # (n, o_y o_z s d, o_x)
+    return t.reshape(n, -1)
+
+
+@functools.lru_cache(maxsize=8)
+def _derivative_index(s: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Positions in the output of :func:`_potential_derivatives` (S fields) of the derivatives a step needs.
+
+    Returns ``grad (9,)``: ``d_j Phi_d`` of field 0 in the order ``(d, j)``, and ``hess (27 S,)``: ``d_l d_j Phi_d``
+    of every field in the order ``(s, d, j, l)``.
+    """
+    def flat(orders, field, d):
+        o_x, o_y, o_z = orders
+        return (((o_y * 3 + o_z) * s + field) * 3 + d) * 3 + o_x
+
+    unit = [tuple(int(m == j) for m in range(3)) for j in range(3)]
+    grad = [flat(unit[j], 0, d) for d in range(3) for j in range(3)]
+    hess = [flat(tuple(p + q for p, q in zip(unit[j], unit[m])), field, d)
+            for field in range(s) for d in range(3) for j in range(3) for m in range(3)]
+    return torch.tensor(grad, device=device), torch.tensor(hess, device=device)
 
 
 def _basis_transpose(factors: torch.Tensor, w: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
@@ -475,10 +490,11 @@ class _StepSolve(torch.autograd.Function):
         u = torch.cholesky_solve(g.double().unsqueeze(-1), factor).squeeze(-1).to(xi.dtype)
         # potentials of the two fields Psi u and Psi xi: (2, 3 d, K, K, K)
         pot = (torch.stack((u, xi)) * scales).reshape(2, 3, k, k, k)
-        deriv = _potential_derivatives(factors, pot)  # (n, 2, 3 d, 27)
+        deriv = _potential_derivatives(factors, pot)
+        at_grad, at_hess = _derivative_index(2, v.device)
         eps_dj = _EPS.to(v).permute(0, 2, 1).reshape(3, 9)  # [i, (d, j)]
         # Psi u: the curl of the gradient
-        p_u = deriv[:, 0].index_select(-1, _ORDER_GRAD.to(v.device)).reshape(n, 9) @ eps_dj.T
+        p_u = deriv.index_select(1, at_grad) @ eps_dj.T
         # cotangent of Psi_i: alpha_i u^T + beta_i xi^T with alpha = rhs - G Psi xi, beta = grad_v - G Psi u
         both = (operator @ torch.stack((v, p_u), dim=-1).reshape(3 * n, 2)).reshape(n, 3, 2)
         weights = torch.stack((rhs - both[..., 0], grad_v - both[..., 1]), dim=1)  # (n, 2, 3)
@@ -486,7 +502,7 @@ class _StepSolve(torch.autograd.Function):
         if ctx.needs_input_grad[0]:
             # sum_i w_i d_l v_i = pi sum_{j, d} (sum_i w_i eps_ijd) d_l d_j Phi_d, both fields at once
             skew = (weights @ eps_dj).reshape(n, 1, 18)  # (s, d, j)
-            hess = deriv.index_select(-1, _ORDER_HESS.to(v.device)).reshape(n, 18, 3)  # (s, d, j), l
+            hess = deriv.index_select(1, at_hess).reshape(n, 18, 3)  # (s, d, j), l
             grad_mid = math.pi * (skew @ hess).reshape(n, 3)
         rotated = frames.transpose(1, 2) @ torch.stack((v, p_u), dim=-1)  # (n, 3, 2): R'^T v, R'^T Psi u
         lap = _laplacian_apply(rotated, graph)
