@@ -173,6 +173,8 @@ def main(argv=None) -> int:
     parser.add_argument("--original", type=Path, required=True, help="checkout of the original code")
     parser.add_argument("--trees", type=Path, nargs="+", default=[REPO],
                         help="checkouts of this repository whose speed.py children run (default this one)")
+    parser.add_argument("--labels", nargs="+", default=None,
+                        help="a name per tree for the record (e.g. its commit; default: the tree's git HEAD or path)")
     parser.add_argument("--golden", type=Path, default=None,
                         help="deep_shells_golden folder (default $SHAPECORR_DEEP_SHELLS_GOLDEN, then the shared copy)")
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=CASES)
@@ -192,6 +194,10 @@ def main(argv=None) -> int:
         return 2
     golden = args.golden or Path(os.environ.get("SHAPECORR_DEEP_SHELLS_GOLDEN", speed.DEFAULT_GOLDEN))
     trees = [t.resolve() for t in args.trees]
+    if args.labels is not None and len(args.labels) != len(trees):
+        print("error: --labels needs one name per tree", file=sys.stderr)
+        return 2
+    labels = args.labels or [_commit(t) or str(t) for t in trees]
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     records = []
     with tempfile.TemporaryDirectory(prefix="hamiltonian_sbs_") as tmp:
@@ -202,22 +208,22 @@ def main(argv=None) -> int:
                 cmd = [sys.executable, str(Path(__file__).resolve()), "--original", str(original),
                        "--original-child", case, "--inputs", str(inputs), "--repeats", str(args.repeats)]
                 runs = [("original", cmd, env)]
-                for tree in trees:
+                for tree, label in zip(trees, labels):
                     cmd = [sys.executable, str(tree / "benchmarks" / "speed.py"), "--child", case, "--golden",
                            str(golden), "--device", "cpu", "--threads", "1", "--repeats", str(args.repeats)]
-                    runs.append((str(tree), cmd, dict(env, PYTHONPATH=str(tree))))
+                    runs.append((label, cmd, dict(env, PYTHONPATH=str(tree))))
                 for code, cmd, child_env in runs:
                     record = _run(cmd, child_env, args.timeout)
                     record.update(case=case, code=code, round=rnd)
                     records.append(record)
                     shown = record.get("error") or (f"cpu {record['cpu_seconds_median']:.3f} s, peak "
                                                     f"{record['peak_rss_mb']:.0f} MB, value {record['value']:.6g}")
-                    print(f"{case} round {rnd} {Path(code).name or code}: {shown} "
+                    print(f"{case} round {rnd} {code}: {shown} "
                           f"(load {record['load_average_1min_before']:.2f})", flush=True)
     summary = {}
     for case in args.cases:
         per_code = {}
-        for code in ["original", *map(str, trees)]:
+        for code in ["original", *labels]:
             ok = [r for r in records if r["case"] == case and r["code"] == code and "error" not in r]
             if ok:
                 per_code[code] = {"cpu_seconds_median": statistics.median(r["cpu_seconds_median"] for r in ok),
@@ -233,7 +239,8 @@ def main(argv=None) -> int:
     report = {"benchmark": "hamiltonian_side_by_side",
               "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
               "command": " ".join([Path(sys.executable).name, *sys.argv]), "original": str(original),
-              "original_commit": _commit(original), "trees": {str(t): _commit(t) for t in trees},
+              "original_commit": _commit(original),
+              "trees": {label: {"path": str(t), "commit": _commit(t)} for t, label in zip(trees, labels)},
               "rounds": args.rounds, "repeats": args.repeats, "machine": bench_common.machine_info(),
               "summary": summary, "records": records}
     bench_common.write_report(args.out, report)
