@@ -187,3 +187,36 @@ def test_step_solve_gradients_match_finite_differences():
         return _StepSolve.apply(m, f, la, r, graph, 1.0 / 16, cfg)
 
     assert torch.autograd.gradcheck(fn, (mid, frames, lam, rhs), eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_step_basis_and_field_derivatives_match_the_divergence_free_module():
+    """The step's direction-major basis is basis_fields' (bitwise), and its transposed products and potential
+    derivatives give Psi^T w, the field and its Jacobian of shapecorr.geometry.divergence_free."""
+    from shapecorr.axiomatic import hamiltonian as ham
+
+    gen = torch.Generator().manual_seed(4)
+    k, n = 3, 40
+    points = 0.1 + 0.8 * torch.rand(n, 3, generator=gen, dtype=torch.float64)
+    factors = ham._field_factors(points, k)
+    for convention in df.CONVENTIONS:
+        basis = df.basis_fields(points, k, convention)  # (n, F, 3), fields abc * 3 + e
+        psi = ham._direction_major_basis(factors, k, convention)  # (n, 3, F), fields e * K^3 + abc
+        assert torch.equal(ham._to_field_order(psi, k), basis.transpose(1, 2))
+        scales = ham._direction_major_scales(k, convention, points.dtype, points.device)[0]
+        w = torch.randn(n, 3, generator=gen, dtype=torch.float64)
+        expected = torch.einsum("nfi,ni->f", basis, w)
+        torch.testing.assert_close(ham._to_field_order(ham._basis_transpose(factors, w, scales), k), expected,
+                                   rtol=1e-12, atol=1e-12)
+        coeffs = torch.randn(2, df.n_fields(k), generator=gen, dtype=torch.float64)
+        pot = (ham._to_direction_major(coeffs, k) * scales).reshape(2, 3, k, k, k)
+        deriv = ham._potential_derivatives(factors, pot)
+        at_grad, at_hess = ham._derivative_index(2, points.device)
+        eps_dj = ham._EPS.to(points).permute(0, 2, 1).reshape(3, 9)
+        torch.testing.assert_close(deriv.index_select(1, at_grad) @ eps_dj.T,
+                                   df.velocity(points, coeffs[0], convention), rtol=1e-12, atol=1e-12)
+        # J^T w for both fields from the second derivatives: sum_i w_i d_l v_i = pi sum_jd (w x)_jd d_l d_j Phi_d
+        skew = (torch.stack((w, 2 * w), dim=1) @ eps_dj).reshape(n, 1, 18)
+        jtw = torch.pi * (skew @ deriv.index_select(1, at_hess).reshape(n, 18, 3)).reshape(n, 3)
+        jac = [df.velocity_jacobian(points, c, convention) for c in coeffs]
+        expected = (jac[0].transpose(1, 2) @ w[..., None] + jac[1].transpose(1, 2) @ (2 * w)[..., None]).squeeze(-1)
+        torch.testing.assert_close(jtw, expected, rtol=1e-10, atol=1e-10)
