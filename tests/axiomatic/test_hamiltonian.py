@@ -220,3 +220,24 @@ def test_step_basis_and_field_derivatives_match_the_divergence_free_module():
         jac = [df.velocity_jacobian(points, c, convention) for c in coeffs]
         expected = (jac[0].transpose(1, 2) @ w[..., None] + jac[1].transpose(1, 2) @ (2 * w)[..., None]).squeeze(-1)
         torch.testing.assert_close(jtw, expected, rtol=1e-10, atol=1e-10)
+
+
+def test_force_gradients_match_finite_differences():
+    """The hand-written backward of the force from the rotations against float64 finite differences."""
+    from shapecorr.axiomatic.divfree import knn_graph_edges
+    from shapecorr.axiomatic.hamiltonian import _ForceFromRotations, _Graph, edge_vectors
+
+    gen = torch.Generator().manual_seed(5)
+    n = 10
+    x0 = (0.3 + 0.4 * torch.rand(n, 3, generator=gen)).double()
+    edges, counts = knn_graph_edges(x0, 3)
+    graph = _Graph(edges, counts.double(), edge_vectors(x0, edges))
+    x = (x0 + 0.05 * torch.randn(n, 3, generator=gen, dtype=torch.float64)).requires_grad_()
+    rot = (torch.eye(3, dtype=torch.float64) + 0.2 * torch.randn(n, 3, 3, generator=gen, dtype=torch.float64))
+    aniso = (torch.eye(3, dtype=torch.float64) + 0.1 * torch.randn(n, 3, 3, generator=gen, dtype=torch.float64))
+
+    def fn(p, r, an):
+        return _ForceFromRotations.apply(p, r, an, graph)
+
+    assert torch.autograd.gradcheck(fn, (x, rot.requires_grad_(), aniso.requires_grad_()), eps=1e-6, atol=1e-7,
+                                    rtol=1e-5)
