@@ -497,10 +497,11 @@ class _StepSolve(torch.autograd.Function):
         # temporary and copies it, three times the work at these sizes)
         product = psi.new_empty(3 * n, psi.shape[-1])
         torch.addmm(product, operator, psi.reshape(3 * n, -1), beta=0, out=product)
-        product = product.reshape(n, 3, -1)
-        system = _system_product(psi, product, k).double()
+        system = _system_product(psi, product.reshape(n, 3, -1), k).double()
+        del product  # 3 n F floats: not kept through the factorization
         system.diagonal().add_(cfg.ridge)
         factor, info = torch.linalg.cholesky_ex(system)
+        del system
         if int(info) != 0:
             raise NumericalError("hamiltonian: the per-step system is not positive definite; lower lr or check "
                                  "the inputs")
