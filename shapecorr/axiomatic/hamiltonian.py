@@ -473,9 +473,11 @@ def _to_field_order(coeffs: torch.Tensor, k: int) -> torch.Tensor:
 class _StepSolve(torch.autograd.Function):
     """Step 3-4 of the module docstring with a hand-written backward.
 
-    Forward: ``Psi (n, F, 3)`` at ``mid``, ``W = G Psi`` with ``G = lambda' I + h^2 B^T H B`` (``B`` the block
-    diagonal of ``R'_i^T``, so that ``Q = B Psi``), the system ``S = Psi^T W + ridge I`` (one matrix product;
-    symmetric positive definite: Cholesky in float64), ``xi = S^-1 Psi^T b`` and ``v = Psi xi``.
+    Forward: the basis ``Psi (3n, F)`` at ``mid`` (fields direction-major, :func:`_direction_major_basis`),
+    ``W = G Psi`` with ``G = lambda' I + h^2 B^T H B`` (``B`` the block diagonal of ``R'_i^T``, so that
+    ``Q = B Psi``), the system ``S = Psi^T W + ridge I`` (:func:`_system_product`; symmetric positive definite:
+    Cholesky in float64), ``xi = S^-1 Psi^T b`` (returned in the field order of
+    :mod:`shapecorr.geometry.divergence_free`) and ``v = Psi xi``.
 
     Backward: the gradient of ``xi = S^-1 r`` with respect to S is the outer product ``-u xi^T`` (``u = S^-1 g``),
     so every gradient of the F x F system reduces to products of ``Psi`` with the two vectors ``u`` and ``xi``:
