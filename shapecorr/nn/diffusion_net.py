@@ -363,14 +363,14 @@ class DiffusionNet(nn.Module):
             Tangent-frame gradient operators (:func:`shapecorr.geometry.diffusion_operators.spatial_gradient`),
             COO or CSR; applied as CSR matrices (:func:`gradient_operators`, cached per tensor).
         rows : (r,) int64, optional
-            Vertices whose features are wanted (repetitions allowed). The last block's per-vertex layers
-            (gradient features, MLP) and the output layer run at the distinct rows only, with the values of the
-            full computation there: the same products per row and, while training, the dropout masks drawn for
-            every vertex (:class:`~shapecorr.nn.dropout.RowDropout`; the random stream advances as in the full
-            computation). The parameters' gradients are then sums over the distinct rows instead of sums over
-            every vertex in which the other rows contribute zeros: equal up to the order of the float additions.
-            Where dropout masks cannot be drawn apart from the values (active dropout on a GPU), every vertex is
-            computed and the rows are selected at the end.
+            Vertices whose features are wanted (repetitions allowed). Without gradients (queries), the last
+            block's per-vertex layers (gradient features, MLP) and the output layer run at the distinct rows only,
+            with the values of the full computation there: the same products per row and, with an active dropout
+            (``dropout_at_test``), the masks drawn for every vertex (:class:`~shapecorr.nn.dropout.RowDropout`;
+            the random stream advances as in the full computation), except on a GPU, whose dropout kernel draws
+            the masks with the values. With gradients (training) every vertex is computed and the rows are
+            selected at the end, so that the parameters' gradients are the sums of the full computation, in the
+            same order.
 
         Returns
         -------
@@ -389,9 +389,9 @@ class DiffusionNet(nn.Module):
                               f"got {tuple(grad_x.shape)}, {tuple(grad_y.shape)}")
         grads = gradient_operators(grad_x, grad_y)
         h = self.first_lin(x)
-        # The last block's per-vertex layers and the output layer at the distinct rows only (per row the same
-        # products, the full computation's dropout masks), unless the masks cannot be drawn apart from the values.
-        at_rows = (rows is not None and len(self.blocks) > 0
+        # Without gradients (queries) the last block's per-vertex layers and the output layer run at the distinct
+        # rows only: per row the same products, the full computation's dropout masks (dropout_at_test).
+        at_rows = (rows is not None and len(self.blocks) > 0 and not torch.is_grad_enabled()
                    and self.blocks[-1].dropout_draws_apart(x.device))
         last_rows = inverse = None
         if at_rows:
