@@ -29,7 +29,10 @@ the gradient of a time at the boundary alive.
 
 The per-shape operators come from the operator registry (:mod:`shapecorr.data.operators`), computed by
 :mod:`shapecorr.geometry.laplace_beltrami` (``eigenbasis``) and :mod:`shapecorr.geometry.diffusion_operators`
-(``diffusion_gradients``); see ``docs/gmsm.md`` for the published settings.
+(``diffusion_gradients``); see ``docs/gmsm.md`` for the published settings. The gradient operators are applied as
+CSR matrices (:func:`gradient_operators`, transposes kept for the backward pass) and the dropout layers are
+:class:`~shapecorr.nn.dropout.RowDropout` (torch's dropout, its masks drawn faster): both give bitwise the values
+and gradients of the plain sparse products and ``nn.Dropout`` (docs/speed.md §4).
 """
 
 from __future__ import annotations
