@@ -29,21 +29,28 @@ the gradient of a time at the boundary alive.
 
 The per-shape operators come from the operator registry (:mod:`shapecorr.data.operators`), computed by
 :mod:`shapecorr.geometry.laplace_beltrami` (``eigenbasis``) and :mod:`shapecorr.geometry.diffusion_operators`
-(``diffusion_gradients``); see ``docs/gmsm.md`` for the published settings.
+(``diffusion_gradients``); see ``docs/gmsm.md`` for the published settings. The gradient operators are applied as
+CSR matrices (:func:`gradient_operators`, transposes kept for the backward pass) and the dropout layers are
+:class:`~shapecorr.nn.dropout.RowDropout` (torch's dropout, its masks drawn faster): both give bitwise the values
+and gradients of the plain sparse products and ``nn.Dropout`` (docs/speed.md §4).
 """
 
 from __future__ import annotations
 
 import itertools
+import warnings
+import weakref
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
 from torch import nn
+from torch.autograd.function import once_differentiable
 
 from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.geometry.finiteness import all_finite
 from shapecorr.nn.backbone import Backbone
+from shapecorr.nn.dropout import RowDropout
 
 #: Published DiffusionNet setting of G-MSM (Eisenberger et al., CVPR 2023, with the DiffusionNet defaults of
 #: Sharp et al. 2022): width, blocks, output channels, eigenpairs, dropout probability (docs/gmsm.md).
@@ -88,6 +95,76 @@ def spectral_diffusion(
     coeffs = evecs.transpose(0, 1) @ (mass[:, None] * x)  # (k, C)
     coeffs = coeffs * torch.exp(-evals[:, None] * times[None, :])
     return evecs @ coeffs
+
+
+class GradientOperators:
+    """The tangent gradient operators ``G_x, G_y (n, n)`` of one shape as CSR matrices.
+
+    Applying a CSR matrix costs about half of applying the coalesced COO tensor the data pipeline hands over,
+    with the same sums per row (bitwise equal products); the backward pass applies the transposes, built as CSR
+    on first use (a CSC conversion read as CSR) and kept. :func:`gradient_operators` caches one per operator
+    tensor.
+
+    Parameters
+    ----------
+    grad_x, grad_y : (n, n) torch sparse float
+        COO or CSR.
+    """
+
+    def __init__(self, grad_x: torch.Tensor, grad_y: torch.Tensor):
+        with warnings.catch_warnings():  # "sparse CSR support is in beta": the two products used here are not
+            warnings.simplefilter("ignore", UserWarning)
+            self.x, self.y = (g if g.layout == torch.sparse_csr else g.to_sparse_csr() for g in (grad_x, grad_y))
+        self._transposed: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def transposed(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(G_x^T, G_y^T)`` as CSR matrices."""
+        if self._transposed is None:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)
+                self._transposed = tuple(  # type: ignore[assignment]
+                    torch.sparse_csr_tensor(c.ccol_indices(), c.row_indices(), c.values(), c.shape[::-1])
+                    for c in (self.x.to_sparse_csc(), self.y.to_sparse_csc()))
+        return self._transposed  # type: ignore[return-value]
+
+    def apply(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(G_x h, G_y h)`` for ``h (n, C)``, differentiable in ``h``.
+
+        Two autograd nodes, as two sparse products would be, so that autograd sums the gradient of ``h`` in
+        the same order.
+        """
+        return _SparseProduct.apply(h, self, 0), _SparseProduct.apply(h, self, 1)
+
+
+class _SparseProduct(torch.autograd.Function):
+    """``ops.x @ h`` (``which`` 0) or ``ops.y @ h`` (1); backward by the kept transpose."""
+
+    @staticmethod
+    def forward(ctx, h, ops, which):
+        ctx.ops, ctx.which = ops, which
+        return (ops.x, ops.y)[which] @ h
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):
+        return ctx.ops.transposed()[ctx.which] @ grad, None, None
+
+
+#: id(grad_x) -> (weak reference to grad_x, weak reference to grad_y, their GradientOperators); an entry is
+#: dropped when grad_x is garbage collected (tensors compare elementwise, so they cannot be dictionary keys).
+_GRADIENT_OPERATORS: dict[int, tuple[weakref.ref, weakref.ref, GradientOperators]] = {}
+
+
+def gradient_operators(grad_x: torch.Tensor, grad_y: torch.Tensor) -> GradientOperators:
+    """:class:`GradientOperators` of ``grad_x, grad_y (n, n)``, cached while the two tensors live (by identity)."""
+    key = id(grad_x)
+    entry = _GRADIENT_OPERATORS.get(key)
+    if entry is None or entry[0]() is not grad_x or entry[1]() is not grad_y:
+        ops = GradientOperators(grad_x, grad_y)
+        entry = (weakref.ref(grad_x, lambda _, key=key: _GRADIENT_OPERATORS.pop(key, None)), weakref.ref(grad_y),
+                 ops)
+        _GRADIENT_OPERATORS[key] = entry
+    return entry[2]
 
 
 class LearnedTimeDiffusion(nn.Module):
@@ -150,8 +227,15 @@ def _mlp(sizes: Sequence[int], dropout: float) -> nn.Sequential:
         if i < len(sizes) - 2:
             layers.append(nn.ReLU())
             if dropout > 0:
-                layers.append(nn.Dropout(dropout))
+                layers.append(RowDropout(dropout))
     return nn.Sequential(*layers)
+
+
+def _mlp_at_rows(mlp: nn.Sequential, x: torch.Tensor, rows: torch.Tensor | None, full_rows: int) -> torch.Tensor:
+    """``mlp`` of ``x``: rows ``rows`` of a ``(full_rows, .)`` input, with the full input's dropout masks."""
+    for layer in mlp:
+        x = layer(x, rows, full_rows) if isinstance(layer, RowDropout) and rows is not None else layer(x)
+    return x
 
 
 class DiffusionNetBlock(nn.Module):
@@ -181,22 +265,29 @@ class DiffusionNetBlock(nn.Module):
         n_in = 3 * width if with_gradient_features else 2 * width
         self.mlp = _mlp([n_in, *mlp_hidden, width], dropout)
 
-    def forward(self, x, evals, evecs, mass, grad_x, grad_y, rows: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x, evals, evecs, mass, grads: GradientOperators, rows: torch.Tensor | None = None
+                ) -> torch.Tensor:
         """``x (n, W)`` -> ``(n, W)``, or ``(len(rows), W)`` at the vertices ``rows``.
 
-        Operators as in :meth:`DiffusionNet.forward`. The diffusion and the gradients need every vertex; the
-        per-vertex layers after them (gradient features, MLP) run at ``rows`` only, with the values they have
-        there in the full computation.
+        Operators as in :meth:`DiffusionNet.forward` (``grads``: the gradient operators,
+        :func:`gradient_operators`). The diffusion and the gradients need every vertex; the per-vertex layers
+        after them (gradient features, MLP) run at ``rows`` only, with the values they have there in the full
+        computation (the dropout masks of the full computation, :class:`~shapecorr.nn.dropout.RowDropout`).
         """
+        n = x.shape[0]
         h = self.diffusion(x, evals, evecs, mass)
-        grads = (grad_x @ h, grad_y @ h) if self.gradient is not None else None
+        g = grads.apply(h) if self.gradient is not None else None
         if rows is not None:
             x, h = x[rows], h[rows]
-            grads = None if grads is None else (grads[0][rows], grads[1][rows])
+            g = None if g is None else (g[0][rows], g[1][rows])
         parts = [x, h]
-        if grads is not None:
-            parts.append(self.gradient(*grads))
-        return x + self.mlp(torch.cat(parts, dim=1))
+        if g is not None:
+            parts.append(self.gradient(*g))
+        return x + _mlp_at_rows(self.mlp, torch.cat(parts, dim=1), rows, n)
+
+    def dropout_draws_apart(self, device) -> bool:
+        """Whether this block's dropout masks can be drawn apart from the values on ``device`` (rows allowed)."""
+        return all(m.draws_apart(device) for m in self.mlp if isinstance(m, RowDropout))
 
 
 class DiffusionNet(nn.Module):
@@ -272,12 +363,17 @@ class DiffusionNet(nn.Module):
             Mass-orthonormal eigenbasis.
         mass : (n,) float
         grad_x, grad_y : (n, n) torch sparse float
-            Tangent-frame gradient operators (:func:`shapecorr.geometry.diffusion_operators.spatial_gradient`).
+            Tangent-frame gradient operators (:func:`shapecorr.geometry.diffusion_operators.spatial_gradient`),
+            COO or CSR; applied as CSR matrices (:func:`gradient_operators`, cached per tensor).
         rows : (r,) int64, optional
-            Vertices whose features are wanted. Without gradients and without an active dropout layer
-            (inference), the last block's per-vertex layers and the output layer run at these rows only, with
-            the values of the full computation there; otherwise every vertex is computed and the rows are
-            selected at the end, so that training (dropout masks, gradient sums) is that of the full computation.
+            Vertices whose features are wanted (repetitions allowed). Without gradients (queries), the last
+            block's per-vertex layers (gradient features, MLP) and the output layer run at the distinct rows only,
+            with the values of the full computation there: the same products per row and, with an active dropout
+            (``dropout_at_test``), the masks drawn for every vertex (:class:`~shapecorr.nn.dropout.RowDropout`;
+            the random stream advances as in the full computation), except on a GPU, whose dropout kernel draws
+            the masks with the values. With gradients (training) every vertex is computed and the rows are
+            selected at the end, so that the parameters' gradients are the sums of the full computation, in the
+            same order.
 
         Returns
         -------
@@ -294,19 +390,23 @@ class DiffusionNet(nn.Module):
         if tuple(grad_x.shape) != (n, n) or tuple(grad_y.shape) != (n, n):
             raise ConfigError(f"gradient operators must be ({n}, {n}), "
                               f"got {tuple(grad_x.shape)}, {tuple(grad_y.shape)}")
+        grads = gradient_operators(grad_x, grad_y)
         h = self.first_lin(x)
-        # inference: the last block's per-vertex layers at the rows only (per row the same products)
-        early = (rows is not None and len(self.blocks) > 0 and not torch.is_grad_enabled()
-                 and not self._dropout_active())
+        # Without gradients (queries) the last block's per-vertex layers and the output layer run at the distinct
+        # rows only: per row the same products, the full computation's dropout masks (dropout_at_test).
+        at_rows = (rows is not None and len(self.blocks) > 0 and not torch.is_grad_enabled()
+                   and self.blocks[-1].dropout_draws_apart(x.device))
+        last_rows = inverse = None
+        if at_rows:
+            last_rows, inverse = torch.unique(rows, return_inverse=True)
         for i, block in enumerate(self.blocks):
-            h = block(h, evals, evecs, mass, grad_x, grad_y, rows if early and i == len(self.blocks) - 1 else None)
+            h = block(h, evals, evecs, mass, grads, last_rows if i == len(self.blocks) - 1 else None)
         out = self.last_lin(h)
         if self.last_activation is not None:
             out = self.last_activation(out)
-        return out if rows is None or early else out[rows]
-
-    def _dropout_active(self) -> bool:
-        return any(isinstance(m, nn.Dropout) and m.training and m.p > 0 for m in self.modules())
+        if rows is None:
+            return out
+        return out[inverse] if at_rows else out[rows]
 
 
 class DiffusionNetBackbone(Backbone):

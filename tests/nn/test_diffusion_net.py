@@ -20,6 +20,7 @@ from shapecorr.nn.backbone import Backbone
 from shapecorr.nn.diffusion_net import (
     DiffusionNet,
     DiffusionNetBackbone,
+    gradient_operators,
     spectral_diffusion,
 )
 
@@ -142,8 +143,8 @@ def test_backbone_interface_rows_operators_and_dropout(ellipsoid):
 
 @pytest.mark.parametrize("n_blocks", [0, 1, 3])
 def test_features_at_rows_equal_the_full_features_at_those_rows(ellipsoid, n_blocks):
-    """Inference runs the last block's per-vertex layers at the rows only: the values must not change; with dropout
-    active (or gradients on) everything runs at every vertex, so the masks are those of the full computation."""
+    """Queries run the last block's per-vertex layers at the rows only: the values must not change (with dropout on
+    too: the full computation's masks); with gradients everything runs at every vertex."""
     torch.manual_seed(0)
     net = DiffusionNetBackbone(k_eig=K_EIG, width=16, out_channels=8, n_blocks=n_blocks)
     with torch.no_grad():  # diffusion that does something
@@ -154,7 +155,7 @@ def test_features_at_rows_equal_the_full_features_at_those_rows(ellipsoid, n_blo
     with torch.no_grad():
         full = net(ellipsoid)
         assert torch.equal(net(ellipsoid, rows), full[rows])
-    part = net(ellipsoid, rows)  # with gradients: the full computation, then the rows
+    part = net(ellipsoid, rows)  # with gradients
     assert torch.equal(part, full[rows]) and part.requires_grad
     net.train()
     for grad in (False, True):
@@ -163,6 +164,50 @@ def test_features_at_rows_equal_the_full_features_at_those_rows(ellipsoid, n_blo
             full = net(ellipsoid)
             torch.manual_seed(1)
             assert torch.equal(net(ellipsoid, rows), full[rows])
+
+
+def test_training_at_rows_has_the_gradients_of_the_full_computation(ellipsoid):
+    """With gradients every vertex is computed: features, gradients and random state those of the full computation."""
+    torch.manual_seed(0)
+    net = DiffusionNetBackbone(k_eig=K_EIG, width=16, out_channels=8, n_blocks=2).train()
+    with torch.no_grad():
+        for block in net.net.blocks:
+            block.diffusion.times.copy_(torch.rand(block.diffusion.times.shape) * 0.05)
+    rows = torch.tensor([5, 0, 7, 5, 40, len(ellipsoid.verts) - 1])
+    up = torch.randn(len(rows), 8)
+
+    def grads(at_rows):
+        net.zero_grad(set_to_none=True)
+        torch.manual_seed(1)
+        out = net(ellipsoid, rows) if at_rows else net(ellipsoid)[rows]
+        out.backward(up)
+        return out.detach(), {k: p.grad.clone() for k, p in net.named_parameters()}, torch.get_rng_state()
+
+    full, g_full, state_full = grads(False)
+    part, g_part, state_part = grads(True)
+    assert torch.equal(part, full) and torch.equal(state_part, state_full)
+    for name, g in g_full.items():
+        assert torch.equal(g_part[name], g), name
+    with torch.no_grad():  # a query with dropout on (dropout_at_test): the rows path, the full computation's masks
+        torch.manual_seed(2)
+        full = net(ellipsoid)
+        state = torch.get_rng_state()
+        torch.manual_seed(2)
+        assert torch.equal(net(ellipsoid, rows), full[rows]) and torch.equal(torch.get_rng_state(), state)
+
+
+def test_gradient_operators_are_the_sparse_products_with_their_gradients(ellipsoid):
+    ops = ellipsoid.operators["diffusion_gradients"]
+    gx, gy = ops["grad_x"], ops["grad_y"]
+    applied = gradient_operators(gx, gy)
+    assert gradient_operators(gx, gy) is applied  # cached per operator tensor
+    h = torch.randn(len(ellipsoid.verts), 5, requires_grad=True)
+    up_x, up_y = torch.randn_like(h), torch.randn_like(h)
+    ax, ay = applied.apply(h)
+    (g,) = torch.autograd.grad([ax, ay], h, [up_x, up_y])
+    rx, ry = gx @ h, gy @ h
+    (g_ref,) = torch.autograd.grad([rx, ry], h, [up_x, up_y])
+    assert torch.equal(ax, rx) and torch.equal(ay, ry) and torch.equal(g, g_ref)
 
 
 def test_gradients_reach_every_parameter_and_times_stay_non_negative(ellipsoid):

@@ -1,0 +1,126 @@
+"""CPU seconds of one training step of the original G-MSM code on the golden pair, side by side with ``speed.py``.
+
+    git clone https://github.com/marvin-eisenberger/gmsm-matching /tmp/gmsm_original
+    python benchmarks/gmsm_original_step.py --original-src /tmp/gmsm_original --repeats 3
+
+The unit is ``speed.py``'s ``gmsm_train``: the original's ``GraphMultiShapeMatching`` (its DiffusionNet feature module,
+width 128, 4 blocks, k_eig 128; its ``DeepParam``: 2000 random samples per shape, shells 6..21, 3 Sinkhorn rounds)
+runs ``subsample_random`` on both shapes, ``match_pair`` (features and the hierarchical matching), ``backward`` and
+an Adam step, on the golden inputs of ``speed.py`` (``--golden``: meshes, the original Deep Shells' 510 eigenpairs,
+lumped mass and SHOT), one thread, in this process: one warm-up step, then ``--repeats`` timed steps (process CPU
+seconds). The DiffusionNet operators are computed once before the timing by the original's own
+``diffusion_net.geometry.get_operators`` (as its dataset does at load). Nothing of the original code is copied: it is
+imported from ``--original-src``. What it imports but is not installed is supplied by packages written to a
+temporary folder: ``torch_geometric.nn`` (``knn`` / ``knn_graph`` by scipy's ``cKDTree``, as in
+``deep_shells_original_query.py``), and ``sklearn.neighbors`` and ``python_tsp`` stand-ins that raise when called
+(imported at module level, never called by a training step); ``torch.solve`` (removed from PyTorch) is
+``torch.linalg.solve``. Prints one JSON line (the medians, every step, the losses, the process's peak resident set,
+the load average); alternate it with ``speed.py --child gmsm_train`` (docs/speed.md §3).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import os
+import random
+import resource
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from deep_shells_original_query import DEFAULT_GOLDEN, PAIR, _write_shim
+
+_RAISING_STUB = '''
+def {name}(*args, **kwargs):
+    raise NotImplementedError("stand-in of the side-by-side benchmark: not used by a G-MSM training step")
+'''
+#: Modules the original imports at module level that a training step never calls: module -> function names.
+_STUBS = {"sklearn/neighbors.py": ("KDTree", "NearestNeighbors"),
+          "python_tsp/exact.py": ("solve_tsp_dynamic_programming",),
+          "python_tsp/heuristics.py": ("solve_tsp_simulated_annealing",)}
+
+
+def _write_stubs(folder: Path) -> None:
+    for rel, names in _STUBS.items():
+        path = folder / rel
+        path.parent.mkdir(exist_ok=True)
+        (path.parent / "__init__.py").touch()
+        path.write_text("".join(_RAISING_STUB.format(name=name) for name in names))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--original-src", type=Path, required=True, help="checkout of marvin-eisenberger/gmsm-matching")
+    parser.add_argument("--golden", type=Path, default=None,
+                        help="deep_shells_golden folder (default $SHAPECORR_DEEP_SHELLS_GOLDEN, then the shared copy)")
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args(argv)
+    golden = args.golden or Path(os.environ.get("SHAPECORR_DEEP_SHELLS_GOLDEN", DEFAULT_GOLDEN))
+    src = args.original_src.resolve()
+    if not (src / "model.py").is_file() or not (src / "diffusion_net" / "layers.py").is_file():
+        print(f"error: {src}: not a checkout of the original G-MSM code", file=sys.stderr)
+        return 2
+    os.environ["OMP_NUM_THREADS"] = "1"
+    import numpy as np
+    import torch
+
+    torch.set_num_threads(1)
+    torch.solve = lambda b, a: (torch.linalg.solve(a, b), None)
+    shim = Path(tempfile.mkdtemp(prefix="gmsm_shim_"))
+    _write_shim(shim)
+    _write_stubs(shim)
+    sys.path[:0] = [str(shim), str(src)]
+    os.chdir(src)
+    with contextlib.redirect_stdout(io.StringIO()):
+        import diffusion_net
+        from model import GraphMultiShapeMatching
+        from utils.shape_utils import Shape
+    inputs = np.load(golden / f"inputs_{PAIR}.npz")
+
+    def shape(side):
+        s = Shape(torch.from_numpy(inputs[f"{side}_verts"].astype(np.float32)),
+                  torch.from_numpy(inputs[f"{side}_faces"].astype(np.int64)))
+        for attr, key in (("evecs", "evecs"), ("evals", "evals"), ("A", "mass"), ("SHOT", "shot")):
+            setattr(s, attr, torch.from_numpy(inputs[f"{side}_{key}"].astype(np.float32)))
+        s.diffusion_net_ops = list(diffusion_net.geometry.get_operators(s.vert, s.triv))
+        s.compute_xi_()
+        return s
+
+    random.seed(0)  # the original draws its samples with Python's random module
+    torch.manual_seed(0)
+    with contextlib.redirect_stdout(io.StringIO()):
+        shape_x, shape_y = shape("x"), shape("y")
+        model = GraphMultiShapeMatching(None, None)
+    model.feat_mod.train()
+    num = model.param.subsample_num
+
+    def step():
+        shape_x.subsample_random(num)
+        shape_y.subsample_random(num)
+        loss = model.match_pair(shape_x, shape_y)
+        loss.backward()
+        model.optimizer.step()
+        model.optimizer.zero_grad()
+        return float(loss.detach())
+
+    cpus, losses = [], []
+    for i in range(args.repeats + 1):  # the first step warms up
+        start = time.process_time()
+        with contextlib.redirect_stdout(io.StringIO()):
+            losses.append(step())
+        if i > 0:
+            cpus.append(time.process_time() - start)
+    print(json.dumps({"case": "gmsm_train", "code": "original", "original_src": str(src), "threads": 1,
+                      "samples": num, "cpu_seconds": cpus, "cpu_seconds_median": statistics.median(cpus),
+                      "losses": losses, "process_max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                      "load_average": list(os.getloadavg())}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
