@@ -24,7 +24,9 @@ median errors, the per-pair list (error, error vs mirror, seconds), the mirrored
 run                       evaluate.py arguments
 ========================  =============================================================================
 divfree                   ``model=divfree`` (config default: Smooth Shells' rigid stage as the pre-alignment, WKS in
-                          the product space)
+                          the product space, the spectral final extraction)
+divfree_flow              ``model=divfree model.extraction=flow`` (final maps from the deformed x alone, without the
+                          spectral extraction)
 divfree_shot              ``model=divfree model.descriptor=shot model.descriptor_weight=[0.2,0.1,0.05]`` (the
                           earlier default product space, SHOT)
 divfree_pca               ``model=divfree model.prealign=pca`` (the paper's 4 axis-sign candidates)
@@ -58,6 +60,7 @@ RESULT = REPO / "benchmarks" / "results" / "mirror_flips.json"
 TEST_SHAPES = [f"tr_reg_{i:03d}" for i in range(80, 100)]
 RUNS = {
     "divfree": ["model=divfree"],
+    "divfree_flow": ["model=divfree", "model.extraction=flow"],
     "divfree_shot": ["model=divfree", "model.descriptor=shot", "model.descriptor_weight=[0.2,0.1,0.05]"],
     "divfree_pca": ["model=divfree", "model.prealign=pca"],
     "divfree_noprealign": ["model=divfree", "model.prealign=none"],

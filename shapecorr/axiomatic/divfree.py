@@ -42,6 +42,7 @@ from shapecorr.geometry import divergence_free as df
 from shapecorr.geometry.normals import vertex_normals
 from shapecorr.geometry.sampling import farthest_point_sampling
 from shapecorr.losses.arap import arap_energy, rotations_from_covariances
+from shapecorr.matching.least_squares import normal_equations, solve_normal_equations
 from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
 from shapecorr.matching.result import MatchResult
 
@@ -233,6 +234,76 @@ def rigid_icp(points_x: torch.Tensor, normals_x: torch.Tensor, points_y: torch.T
     return rot, trans
 
 
+#: Final-map extraction modes (docs/divfree.md §5): the product-space nearest neighbours of the deformed x
+#: (``flow``), or the same product space with the aligned spectral embedding of a functional map fitted to the
+#: flow's cycle-consistent pairs (``spectral``).
+EXTRACTION_MODES = ("flow", "spectral")
+
+
+def cycle_consistent(points_x: torch.Tensor, points_y: torch.Tensor, p2p: torch.Tensor, p2p_inv: torch.Tensor,
+                     tolerance: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Vertices whose round trip through the two maps returns within ``tolerance`` of where it started.
+
+    Parameters
+    ----------
+    points_x : (n, 3) float
+        x at rest (the round trip is measured on the undeformed shape).
+    points_y : (m, 3) float
+    p2p : (n,) int64
+        Map x -> y.
+    p2p_inv : (m,) int64
+        Map y -> x.
+    tolerance : float
+        Largest Euclidean distance (units of the points) between a vertex and its round-trip image.
+
+    Returns
+    -------
+    consistent_x : (n,) bool
+        ``|x_i - x_{p2p_inv[p2p[i]]}| < tolerance``.
+    consistent_y : (m,) bool
+        ``|y_j - y_{p2p[p2p_inv[j]]}| < tolerance``.
+    """
+    back_x = (points_x - points_x[p2p_inv[p2p]]).norm(dim=1)
+    back_y = (points_y - points_y[p2p[p2p_inv]]).norm(dim=1)
+    return back_x < tolerance, back_y < tolerance
+
+
+def functional_map_from_maps(evecs_x: torch.Tensor, evecs_y: torch.Tensor, mass_x: torch.Tensor,
+                             mass_y: torch.Tensor, p2p: torch.Tensor, p2p_inv: torch.Tensor,
+                             keep_x: torch.Tensor | None = None, keep_y: torch.Tensor | None = None) -> torch.Tensor:
+    """Functional map ``C`` (y's coefficients -> x's) fitted to both point maps by weighted least squares.
+
+    Minimizes ``sum_i a_i |phi_x(i) C - phi_y(p2p[i])|^2 + sum_j b_j |phi_x(p2p_inv[j]) C - phi_y(j)|^2`` with the
+    vertex areas ``a = mass_x``, ``b = mass_y`` restricted to the kept vertices: ``phi_x C`` is then y's spectral
+    embedding pulled onto x, aligned with ``phi_y``.
+
+    Parameters
+    ----------
+    evecs_x : (n, k) float
+    evecs_y : (m, k) float
+        Mass-orthonormal eigenfunctions (the same ``k`` on both shapes).
+    mass_x : (n,) float
+    mass_y : (m,) float
+    p2p : (n,) int64
+        Map x -> y.
+    p2p_inv : (m,) int64
+        Map y -> x.
+    keep_x : (n,) bool, optional
+    keep_y : (m,) bool, optional
+        Vertices whose pairs enter the fit (default all).
+
+    Returns
+    -------
+    (k, k) float64
+    """
+    wx = mass_x.to(torch.float64) * (1.0 if keep_x is None else keep_x.to(torch.float64))
+    wy = mass_y.to(torch.float64) * (1.0 if keep_y is None else keep_y.to(torch.float64))
+    design = torch.cat([evecs_x, evecs_x[p2p_inv]])
+    target = torch.cat([evecs_y[p2p], evecs_y])
+    gram, rhs = normal_equations(design, target, torch.cat([wx, wy]))
+    return solve_normal_equations(gram, rhs, what="divfree spectral extraction (functional map)")
+
+
 class DivFreeMatcher:
     """Divergence-free deformation matcher (module docstring; parameters in configs/model/divfree.yaml).
 
@@ -319,6 +390,11 @@ class DivFreeMatcher:
         prealign_keep_input: bool = True,
         prealign_score_descriptors: float = 0.3,
         descriptor=DEFAULT_DESCRIPTOR,
+        extraction: str = "spectral",
+        extraction_k: int = 10,
+        extraction_weight: float = 0.1,
+        extraction_consistency: float = 0.03,
+        extraction_iterations: int = 2,
     ):
         modes = [int(m) for m in (modes if isinstance(modes, (list, tuple)) else [modes])]
         n = len(modes)
@@ -367,6 +443,17 @@ class DivFreeMatcher:
             raise ConfigError(f"divfree: descriptor must be one or more distinct names of {DESCRIPTORS}, "
                               f"got {descriptor}")
         self.descriptors = tuple(names)
+        if extraction not in EXTRACTION_MODES:
+            raise ConfigError(f"divfree: extraction must be one of {EXTRACTION_MODES}, got {extraction!r}")
+        if int(extraction_k) < 1 or int(extraction_iterations) < 1 or extraction_weight < 0 \
+                or extraction_consistency <= 0:
+            raise ConfigError("divfree: extraction_k and extraction_iterations must be >= 1, extraction_weight >= 0 "
+                              "and extraction_consistency > 0")
+        self.extraction = extraction
+        self.extraction_k = int(extraction_k)
+        self.extraction_weight = float(extraction_weight)
+        self.extraction_consistency = float(extraction_consistency)
+        self.extraction_iterations = int(extraction_iterations)
         uses_descriptor = any(level.descriptor_weight > 0 for level in self.levels)
         self.required_operators = {d: {} for d in self.descriptors} if uses_descriptor else {}
         if prealign == "smooth_shells":  # the rigid stage's basis features need SHOT
@@ -375,6 +462,9 @@ class DivFreeMatcher:
             from shapecorr.axiomatic.smooth_shells import SmoothShellsConfig
 
             self.required_operators["eigenbasis"] = {"k": SmoothShellsConfig().num_eigs}
+        if extraction == "spectral":
+            have = self.required_operators.get("eigenbasis", {}).get("k", 0)
+            self.required_operators["eigenbasis"] = {"k": max(have, self.extraction_k)}
 
     # ------------------------------------------------------------------------------------------------------
     # pieces
@@ -594,7 +684,40 @@ class DivFreeMatcher:
         emb_x = self._embed(moved, vertex_normals(moved, x.faces.to(moved.device)), dx, level)
         emb_y = self._embed(by, fit["normals_y"], dy, level)
         p2p, p2p_inv = self._nn(emb_x, emb_y)
+        if self.extraction == "spectral":
+            p2p, p2p_inv = self._spectral_maps(bx, by, emb_x, emb_y, p2p, p2p_inv, x, y)
         return moved, p2p, p2p_inv
+
+    def _spectral_maps(self, bx, by, emb_x, emb_y, p2p, p2p_inv, x, y) -> tuple[torch.Tensor, torch.Tensor]:
+        """The ``spectral`` extraction: the flow's product space plus the aligned spectral embedding of its maps.
+
+        The flow's maps fit a functional map at ``extraction_k`` eigenfunctions on the vertices whose round trip
+        x -> y -> x (y -> x -> y) returns within ``extraction_consistency`` box units at rest; a limb that the flow
+        laid onto the other side's limb maps many-to-one and fails the round trip, so it does not enter the fit.
+        ``phi_x C`` is intrinsic and, being fitted to the consistent part of the map, not left/right symmetric: in
+        the product space it pulls such a limb to its own side while the coordinates keep the flow's accuracy
+        elsewhere. With fewer consistent vertices than eigenfunctions on a side, all vertices enter the fit. Each
+        of the ``extraction_iterations`` rounds refits the functional map to the previous round's maps.
+        """
+        k = self.extraction_k
+        for sample in (x, y):
+            if sample.evecs.shape[1] < k:
+                raise ConfigError(f"divfree: the spectral extraction needs {k} eigenfunctions, {sample.name!r} has "
+                                  f"{sample.evecs.shape[1]} (raise data.operators.n_eig)")
+        dev = emb_x.device
+        phi_x = x.evecs[:, :k].to(device=dev, dtype=torch.float64)
+        phi_y = y.evecs[:, :k].to(device=dev, dtype=torch.float64)
+        w = self.extraction_weight
+        for _ in range(self.extraction_iterations):
+            keep_x, keep_y = cycle_consistent(bx, by, p2p, p2p_inv, self.extraction_consistency)
+            if int(keep_x.sum()) < k or int(keep_y.sum()) < k:
+                keep_x = keep_y = None
+            fmap = functional_map_from_maps(phi_x, phi_y, x.mass.to(dev), y.mass.to(dev), p2p, p2p_inv,
+                                            keep_x, keep_y)
+            spec_x = torch.cat([emb_x, w * (phi_x @ fmap).to(emb_x.dtype)], dim=1)
+            spec_y = torch.cat([emb_y, w * phi_y.to(emb_y.dtype)], dim=1)
+            p2p, p2p_inv = self._nn(spec_x, spec_y)
+        return p2p, p2p_inv
 
     def _frames(self, fit: dict, x, times: torch.Tensor) -> torch.Tensor:
         """Flow of every vertex of x at ``times``, in x's normalized units.

@@ -12,12 +12,16 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from shapecorr.axiomatic.divfree import (
-    DivFreeMatcher, knn_graph_edges, orientation_candidates, principal_frame, rigid_icp,
+    DivFreeMatcher, cycle_consistent, functional_map_from_maps, knn_graph_edges, orientation_candidates,
+    principal_frame, rigid_icp,
 )
 from shapecorr.data.datasets import ShapeSample
 from shapecorr.data.shape import make_shape
 from shapecorr.errors import ConfigError
 from shapecorr.eval.metrics import relative_volume_change, surface_area
+from shapecorr.geometry import divergence_free as df
+from shapecorr.geometry.laplace_beltrami import eigenbasis
+from shapecorr.geometry.normals import vertex_normals
 from shapecorr.geometry.remeshing import remesh
 from shapecorr.geometry.shot_descriptor import shot
 
@@ -39,11 +43,13 @@ def _blob(n_verts: int):
 
 
 def _sample(verts, faces, name):
-    n = len(verts)
+    evals, evecs, mass = eigenbasis(verts, faces, 12)  # the spectral extraction's functional map (k = 10)
     return ShapeSample(
         shape=make_shape(verts, faces, name, normalization=None),
         operators={
-            "eigenbasis": {"evals": torch.zeros(1), "evecs": torch.ones(n, 1), "mass": torch.ones(n)},
+            "eigenbasis": {"evals": torch.tensor(evals, dtype=torch.float32),
+                           "evecs": torch.tensor(evecs, dtype=torch.float32),
+                           "mass": torch.tensor(mass, dtype=torch.float32)},
             "shot": {"shot": torch.tensor(shot(verts, faces), dtype=torch.float32)},
         },
     )
@@ -136,8 +142,9 @@ def test_config_has_published_defaults():
     assert matcher.prealign == "smooth_shells"
     assert matcher.descriptors == ("wks",) and matcher.levels[0].descriptor_weight == 2.0
     assert matcher.required_operators == {"wks": {}, "shot": {}, "eigenbasis": {"k": 509}}
-    assert DivFreeMatcher(prealign="pca").required_operators == {"wks": {}}
-    assert DivFreeMatcher(prealign="pca", descriptor="shot").required_operators == {"shot": {}}
+    assert (matcher.extraction, matcher.extraction_k, matcher.extraction_iterations) == ("spectral", 10, 2)
+    assert DivFreeMatcher(prealign="pca").required_operators == {"wks": {}, "eigenbasis": {"k": 10}}
+    assert DivFreeMatcher(prealign="pca", descriptor="shot", extraction="flow").required_operators == {"shot": {}}
 
 
 def test_bad_input(rigid_pair):
@@ -249,7 +256,7 @@ def test_descriptor_option():
     sample = ShapeSample(shape=make_shape(v, f, "x", normalization=None),
                          operators={"shot": {"shot": shot_rows}, "wks": {"wks": wks}})
     both = DivFreeMatcher(**{**FAST, "descriptor": ["shot", "wks"]}, prealign="none")
-    assert both.required_operators == {"shot": {}, "wks": {}}
+    assert both.required_operators == {"shot": {}, "wks": {}, "eigenbasis": {"k": 10}}
     assert DivFreeMatcher(**{**FAST, "descriptor": "wks"}, prealign="smooth_shells").required_operators.keys() == {
         "wks", "shot", "eigenbasis"}
     block = both._descriptor(sample)
@@ -262,3 +269,46 @@ def test_descriptor_option():
         DivFreeMatcher(descriptor=["wks", "wks"])
     with pytest.raises(ConfigError, match="hks"):
         DivFreeMatcher(**{**FAST, "descriptor": "hks"}, prealign="none")._descriptor(sample)
+
+
+def test_spectral_extraction_undoes_a_laid_over_patch():
+    """A patch of x that the flow laid onto a neighbouring patch of y (mapped many-to-one, as a swapped limb) is
+    pulled back to its own place by the spectral extraction; the rest of the map stays exact."""
+    v, f = _blob(300)
+    v = v * np.sqrt((4 / 9) / surface_area(v, f))  # FAUST_r's normalized area (the weights' units)
+    perm = np.random.default_rng(0).permutation(len(v))  # vertex i of x is vertex perm[i] of y (same surface)
+    vy = np.empty_like(v)
+    vy[perm] = v
+    x, y = _sample(v, f, "x"), _sample(vy, perm[f], "y")
+    tx, ty = torch.tensor(v, dtype=torch.float32), torch.tensor(vy, dtype=torch.float32)
+    box_x, box_y = df.box_normalization(tx, ty, 0.05)
+    bx, by = box_x.to_box(tx), box_y.to_box(ty)
+    # the patch R around the +x tip is mapped onto the patch 0.25 away (which keeps its own, right images)
+    a = int(np.argmax(v[:, 0]))
+    b = int(np.argmin(np.abs(np.linalg.norm(v - v[a], axis=1) - 0.25)))
+    patch = np.linalg.norm(v - v[a], axis=1) < 0.1
+    p2p = perm.copy()
+    p2p[patch] = perm[cKDTree(v).query(v[patch] - v[a] + v[b])[1]]
+    p2p, p2p_inv = torch.from_numpy(p2p), torch.from_numpy(np.argsort(perm))
+    keep_x, keep_y = cycle_consistent(bx, by, p2p, p2p_inv, 0.03)
+    # the patch fails the round trip on both sides (y's uncovered patch returns through x's patch), nothing else
+    assert torch.equal(keep_x, torch.from_numpy(~patch)) and torch.equal(keep_y[perm], torch.from_numpy(~patch))
+    fmap = functional_map_from_maps(x.evecs[:, :10], y.evecs[:, :10], x.mass, y.mass, p2p, p2p_inv, keep_x, keep_y)
+    assert fmap.shape == (10, 10) and fmap.dtype == torch.float64
+    # the deformed x lies where the flow's map says: the coordinates alone keep the patch on the wrong place
+    moved = by[p2p]
+    emb_x, emb_y = torch.cat([moved, 0.1 * vertex_normals(moved, x.faces)], 1), torch.cat([by, 0.1 * vertex_normals(
+        by, y.faces)], 1)
+    matcher = DivFreeMatcher(prealign="none", descriptor_weight=0.0)
+    assert (matcher.extraction, matcher.extraction_k, matcher.required_operators) == ("spectral", 10, {
+        "eigenbasis": {"k": 10}})
+    new, new_inv = matcher._spectral_maps(bx, by, emb_x, emb_y, p2p, p2p_inv, x, y)
+    error = np.linalg.norm(vy[new.numpy()] - vy[perm], axis=1)
+    before = np.linalg.norm(vy[p2p.numpy()] - vy[perm], axis=1)
+    assert before[patch].mean() > 0.2 and error[patch].mean() < 0.25 * before[patch].mean()
+    assert (new.numpy()[~patch] == perm[~patch]).mean() > 0.9 and error.mean() < 0.01
+    assert new_inv.shape == (len(v),)
+    with pytest.raises(ConfigError, match="extraction"):
+        DivFreeMatcher(extraction="zoomout")
+    with pytest.raises(ConfigError, match="eigenfunctions"):
+        DivFreeMatcher(prealign="none", extraction_k=20)._spectral_maps(bx, by, emb_x, emb_y, p2p, p2p_inv, x, y)
