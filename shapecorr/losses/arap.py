@@ -231,6 +231,8 @@ def polar_rotations(cov: torch.Tensor) -> torch.Tensor:
         raise ConfigError(f"covariances must be (..., 3, 3), got {tuple(cov.shape)}")
     if not bool(torch.isfinite(cov).all()):
         raise NumericalError("ARAP covariances contain NaN or Inf; cannot fit rotations")
+    if cov.numel() == 0:
+        return cov.detach().clone()
     with torch.no_grad():
         batch = cov.shape[:-2]
         s = cov.detach().to(torch.float64).reshape(-1, 9).T.contiguous()  # (9, N): entry-major
