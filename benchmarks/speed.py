@@ -26,6 +26,10 @@ Cases (the units of the speed table of docs/speed.md):
   ``model=smooth_shells`` (the published isometric preset: rigid stage, 100 random-search proposals, 51 layers).
   The eigenbasis and SHOT come from the project's shape cache (filled before the timing if missing); the
   original has no figure on this CPU (its paper reports 116 s per query on a GPU machine).
+* ``divfree_query``: one divergence-free query of the same FAUST_r pair, read the same way, with the default
+  ``model=divfree`` (configs/model/divfree.yaml: Smooth Shells pre-alignment, 3 levels of 500 / 1000 / 2000
+  samples, K = 2 / 4 / 8, 50 / 50 / 100 Adam iterations, full-resolution maps and the 5 default frames); the
+  original has no figure on this CPU (its paper reports ~370 s per pair).
 * ``neuromorph_train_t0`` / ``neuromorph_train_t7``: one NeuroMorph training step (``configs/model/neuromorph.yaml``,
   published settings, seed-0 weights) on the golden pair remeshed to ~2000 vertices per shape
   (:func:`neuromorph_inputs`), with T = 0 (geodesic weight 50) and T = 7 intermediate time steps (geodesic weight 0,
@@ -75,8 +79,10 @@ NEUROMORPH_SETTINGS = {"neuromorph_train_t0": {"n_intermediate": 0, "lambda_geo"
 #: NeuroMorph's working resolution (vertices per shape; the original trains on 2000-vertex FAUST_r remeshes).
 NEUROMORPH_VERTS = 2000
 CASES = ("deep_shells_train", "deep_shells_query", "gmsm_train", "gmsm_query", "hamiltonian_published",
-         "hamiltonian_small", "smooth_shells_query", *NEUROMORPH_SETTINGS)
-#: The FAUST_r pair of ``smooth_shells_query`` (the same pair as the golden inputs).
+         "hamiltonian_small", "smooth_shells_query", "divfree_query", *NEUROMORPH_SETTINGS)
+#: Cases that run one query of a FAUST_r pair through the data pipeline, and the ``model=`` each uses.
+FAUST_R_QUERIES = {"smooth_shells_query": "smooth_shells", "divfree_query": "divfree"}
+#: The FAUST_r pair of the FAUST_r query cases (the same pair as the golden inputs).
 FAUST_R_PAIR = ("tr_reg_080", "tr_reg_081")
 DEVICES = ("cpu1", "cpu2", "cuda")
 #: The originals' CPU seconds per unit (one thread, medians of CPU time, measured side by side with shapecorr on
@@ -95,6 +101,8 @@ ORIGINAL_REFERENCE = {
 ORIGINAL_NOTES = {
     "smooth_shells_query": "the Smooth Shells paper (CVPR 2020, §6) reports 116 s per query on a GPU machine; "
                            "target of the speed issue: <= 30 s CPU at one thread",
+    "divfree_query": "the divergence-free paper (SGP 2019) reports ~370 s per pair; target of the speed issue: "
+                     "<= 60 s CPU per pair at one thread with the config defaults",
 }
 #: Per-unit targets of the speed issue: the original's seconds divided by shapecorr's.
 TARGET_RATIO = {"deep_shells_train": 10.0, "deep_shells_query": 6.0, "gmsm_train": 8.0, "gmsm_query": 8.0,
@@ -219,8 +227,8 @@ def _hamiltonian(golden: Path, device, setting: dict):
     return op
 
 
-def _smooth_shells(device):
-    """One query of the FAUST_r pair with ``model=smooth_shells`` as ``evaluate.py data=faust_r`` builds it."""
+def _faust_r_query(model: str, device):
+    """One query of the FAUST_r pair with ``model=<model>`` as ``evaluate.py data=faust_r`` builds it."""
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
@@ -228,9 +236,9 @@ def _smooth_shells(device):
     from shapecorr.data.operators import required_request
 
     if not os.environ.get("SHAPECORR_FAUST_R"):
-        raise SystemExit("error: smooth_shells_query needs $SHAPECORR_FAUST_R (the FAUST_r folder)")
+        raise SystemExit(f"error: the {model} query needs $SHAPECORR_FAUST_R (the FAUST_r folder)")
     with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        cfg = compose("evaluate", overrides=["model=smooth_shells", "data=faust_r"])
+        cfg = compose("evaluate", overrides=[f"model={model}", "data=faust_r"])
     matcher = build_matcher(cfg, device)
     dm = instantiate(cfg.data, _convert_="object")
     dm.with_operators(required_request(matcher))
@@ -309,8 +317,8 @@ def build_case(case: str, golden: Path, device, neuromorph_inputs_path: Path | N
         return _gmsm(golden, device, train=case.endswith("train"))
     if case in HAMILTONIAN_SETTINGS:
         return _hamiltonian(golden, device, HAMILTONIAN_SETTINGS[case])
-    if case == "smooth_shells_query":
-        return _smooth_shells(device)
+    if case in FAUST_R_QUERIES:
+        return _faust_r_query(FAUST_R_QUERIES[case], device)
     if case in NEUROMORPH_SETTINGS:
         return _neuromorph(golden, device, NEUROMORPH_SETTINGS[case], neuromorph_inputs_path)
     raise SystemExit(f"error: unknown case {case!r}; one of {CASES}")

@@ -41,7 +41,7 @@ from shapecorr.errors import ConfigError, NumericalError
 from shapecorr.geometry import divergence_free as df
 from shapecorr.geometry.normals import vertex_normals
 from shapecorr.geometry.sampling import farthest_point_sampling
-from shapecorr.losses.arap import arap_energy, rotations_from_covariances
+from shapecorr.losses.arap import arap_covariances, arap_energy, polar_rotations, rotations_from_covariances
 from shapecorr.matching.least_squares import normal_equations, solve_normal_equations
 from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
 from shapecorr.matching.result import MatchResult
@@ -548,7 +548,10 @@ class DivFreeMatcher:
         path = self._flow(xs, coeffs, return_path=True)  # (N + 1, m, 3)
         end = path[-1]
         e_align = 0.5 * (self._huber_mse(end - by[match_xy]) + self._huber_mse(end[match_yx] - by[sy]))
-        e_reg = arap_energy(path[:1].expand_as(path[1:]), path[1:], *graph, mode="average").sum()
+        rest = path[:1].expand_as(path[1:])
+        # the rotations of arap_energy (fitted, detached), by the batched Newton polar iteration
+        rotations = polar_rotations(arap_covariances(rest, path[1:], *graph))
+        e_reg = arap_energy(rest, path[1:], *graph, rotations=rotations, mode="average").sum()
         return e_align, e_reg / (xs.shape[0] * self.n_steps * ARAP_NORMALIZATION / self.knn)
 
     def _run_level(self, st: dict, i_level: int, coeffs: torch.Tensor, fx, dx, dy, names: str) -> tuple:

@@ -13,6 +13,7 @@ from shapecorr.losses.arap import (
     arap_energy,
     arap_rotations,
     arap_sequence_loss,
+    polar_rotations,
     rotations_from_covariances,
 )
 
@@ -237,3 +238,23 @@ def test_errors():
         rotations_from_covariances(torch.full((2, 3, 3), float("inf")))
     with pytest.raises(ConfigError, match="S >= 2"):
         arap_sequence_loss(verts[None], edges)
+
+
+def test_polar_rotations_equal_the_svd_rotations():
+    """The Newton polar iteration gives the SVD's float32 rotations, reflections and degenerate matrices included."""
+    gen = torch.Generator().manual_seed(3)
+    e0 = torch.randn(4000, 5, 3, generator=gen, dtype=DTYPE) * torch.tensor([1.0, 1.0, 0.05], dtype=DTYPE)
+    turn = torch.linalg.matrix_exp(0.2 * torch.randn(4000, 3, 3, generator=gen, dtype=DTYPE))
+    et = e0 @ turn.mT + 0.05 * torch.randn(4000, 5, 3, generator=gen, dtype=DTYPE)
+    cov = (et.unsqueeze(-1) * e0.unsqueeze(-2)).sum(1).to(torch.float32).reshape(2, 2000, 3, 3)
+    cov[0, 0] = 0.0  # zero
+    cov[0, 1] = torch.diag(torch.tensor([1.0, 1.0, 0.0]))  # singular
+    cov[0, 2] = torch.diag(torch.tensor([1.0, 1.0, -1.0]))  # reflection
+    reflections = int((torch.linalg.det(cov.double()) < 0).sum())
+    assert reflections > 1
+    fast, reference = polar_rotations(cov), rotations_from_covariances(cov)
+    assert fast.shape == cov.shape and fast.dtype == torch.float32
+    assert torch.equal(fast, reference)
+    assert torch.allclose(torch.linalg.det(fast.double()), torch.ones(2, 2000, dtype=DTYPE), atol=1e-6)
+    with pytest.raises(NumericalError):
+        polar_rotations(torch.full((2, 3, 3), float("nan")))
