@@ -191,42 +191,26 @@ def _chunks(n: int, chunk_size: int):
         yield slice(start, min(n, start + chunk_size))
 
 
-#: Rows of the per-coordinate factors ``(n, 6, K)`` (row ``2 m + t``: coordinate m, t = 0 sine, 1 derivative) that
-#: build the gradient components j = 0, 1, 2: the x factors (cos, sin, sin), then y (sin, cos, sin), then z (sin,
-#: sin, cos).
-_ROLE_ROWS = (1, 0, 0, 2, 3, 2, 4, 4, 5)
-#: Entries ``3 j + d`` of the flattened gradient ``d_j Phi_d`` that form the curl: ``v_i = g[a_i] - g[b_i]``.
-_CURL_PLUS, _CURL_MINUS = (5, 6, 1), (7, 2, 3)
+def _velocity_block(points: torch.Tensor, pot: torch.Tensor, n_modes: int) -> torch.Tensor:
+    """Velocity at ``points (n, 3)`` from the potential coefficients ``pot (3, K, K, K)``.
 
-
-def _velocity_matrix(pot: torch.Tensor) -> torch.Tensor:
-    """Potential coefficients ``(3_d, K_a, K_b, K_c)`` as the ``(K_b K_c, 3_d K_a)`` matrix of the velocity block."""
-    k = pot.shape[1]
-    return pot.permute(2, 3, 0, 1).reshape(k * k, 3 * k)
-
-
-def _velocity_block(points: torch.Tensor, potm: torch.Tensor, n_modes: int) -> torch.Tensor:
-    """Velocity at ``points (n, 3)`` from the potential coefficients ``potm (K^2, 3 K)`` (:func:`_velocity_matrix`).
-
-    ``d_j Phi_d = sum_a fx_j[a] sum_bc fy_j[b] fz_j[c] A[d, a, b, c]`` with the factors (cos, sin, sin), (sin, cos,
-    sin), (sin, sin, cos) of x, y, z for j = 0, 1, 2: the outer products ``fy_j fz_j`` of the three components
-    form one ``(3 n, K^2)`` matrix, contracted over (b, c) with one matrix product, then over a. Few, large
-    operations: at the sizes of the optimization the per-operation overhead (forward and backward) dominates.
+    The three gradient components need the products (cos, sin, sin), (sin, cos, sin), (sin, sin, cos); the
+    contraction over c is shared between the first two. Written as a few batched matrix products (rather than
+    one einsum per component) because the per-call overhead dominates at the sizes of the optimization.
     """
     k = n_modes
     n = points.shape[0]
-    modes = torch.arange(1, k + 1, dtype=points.dtype, device=points.device)
-    arg = points.unsqueeze(-1) * (math.pi * modes)  # (n, 3, K)
-    factors = torch.stack((torch.sin(arg), torch.cos(arg) * modes), dim=2).reshape(n, 6, k)
-    roles = factors.index_select(1, torch.tensor(_ROLE_ROWS, device=points.device))  # (n, 9, K)
-    fx, fy, fz = roles.reshape(n, 3, 3, k).unbind(1)  # (n, 3_j, K) each
-    outer = (fy.unsqueeze(-1) * fz.unsqueeze(-2)).reshape(3 * n, k * k)  # (n 3_j, K_b K_c)
-    partial = (outer @ potm).reshape(n, 3, 3, k)  # (n, j, d, a)
-    # d_j Phi_d, with the 1/pi of the module docstring, flattened to (n, 3 j + d)
-    grad = (partial * fx.unsqueeze(2)).sum(-1).reshape(n, 9)
-    plus = grad.index_select(1, torch.tensor(_CURL_PLUS, device=points.device))
-    minus = grad.index_select(1, torch.tensor(_CURL_MINUS, device=points.device))
-    return plus - minus
+    sin, dcos, _ = _factors(points, k, second=False)
+    fz = torch.stack((sin[:, 2], dcos[:, 2]), dim=1)  # (n, 2, K): (sin z, cos z)
+    fy = torch.stack((sin[:, 1], dcos[:, 1]), dim=1)  # (n, 2, K)
+    u = fz @ pot.reshape(3 * k * k, k).T  # (n, 2_z, 3_d * K_a * K_b)
+    w = u.reshape(n, 2 * 3 * k, k) @ fy.transpose(1, 2)  # (n, 2_z * 3_d * K_a, 2_y)
+    w = w.reshape(n, 2, 3, k, 2)  # (n, z, d, a, y)
+    # components j = 0, 1, 2: (z, y) = (sin, sin), (sin, cos), (cos, sin); x factor cos, sin, sin
+    zy = torch.stack((w[:, 0, :, :, 0], w[:, 0, :, :, 1], w[:, 1, :, :, 0]), dim=1)  # (n, j, d, a)
+    fx = torch.stack((dcos[:, 0], sin[:, 0], sin[:, 0]), dim=1)  # (n, j, a)
+    grad = (zy * fx[:, :, None, :]).sum(-1)  # (n, j, d) = d_j Phi_d, with the 1/pi of the module docstring
+    return _curl(grad)
 
 
 def velocity(
@@ -253,14 +237,14 @@ def velocity(
         Differentiable in ``points`` and ``coeffs``.
     """
     k, pot = _prepare(points, coeffs, convention)
-    return _field(points, _velocity_matrix(pot), k, chunk_size)
+    return _field(points, pot, k, chunk_size)
 
 
-def _field(points: torch.Tensor, potm: torch.Tensor, k: int, chunk_size: int) -> torch.Tensor:
-    """Unchecked velocity from the coefficient matrix of :func:`_velocity_matrix` (the flows check inputs once)."""
+def _field(points: torch.Tensor, pot: torch.Tensor, k: int, chunk_size: int) -> torch.Tensor:
+    """Unchecked velocity from the potential coefficients (the flows check their inputs once)."""
     if points.shape[0] <= chunk_size:
-        return _velocity_block(points, potm, k)
-    blocks = [_velocity_block(points[s], potm, k) for s in _chunks(points.shape[0], chunk_size)]
+        return _velocity_block(points, pot, k)
+    blocks = [_velocity_block(points[s], pot, k) for s in _chunks(points.shape[0], chunk_size)]
     return torch.cat(blocks, dim=0) if blocks else points.new_zeros(0, 3)
 
 
@@ -463,17 +447,17 @@ def flow_step(points: torch.Tensor, coeffs: torch.Tensor, h: float, rule: str = 
     """
     _check_rule(rule, 1)
     k, pot = _prepare(points, coeffs, convention)
-    return _step(points, _velocity_matrix(pot), k, h, rule, chunk_size)
+    return _step(points, pot, k, h, rule, chunk_size)
 
 
-def _step(points: torch.Tensor, potm: torch.Tensor, k: int, h: float, rule: str, chunk_size: int) -> torch.Tensor:
+def _step(points: torch.Tensor, pot: torch.Tensor, k: int, h: float, rule: str, chunk_size: int) -> torch.Tensor:
     if rule == "midpoint":
-        mid = points + 0.5 * h * _field(points, potm, k, chunk_size)
-        return points + h * _field(mid, potm, k, chunk_size)
+        mid = points + 0.5 * h * _field(points, pot, k, chunk_size)
+        return points + h * _field(mid, pot, k, chunk_size)
     if h < 0:
         raise ConfigError("the 'original' step rule cannot run backwards in time (its steps scale with h^2)")
-    mid = points + 0.5 * h * h * _field(points, potm, k, chunk_size)
-    return mid + h * h * _field(mid, potm, k, chunk_size)
+    mid = points + 0.5 * h * h * _field(points, pot, k, chunk_size)
+    return mid + h * h * _field(mid, pot, k, chunk_size)
 
 
 def integrate_flow(
@@ -514,7 +498,6 @@ def integrate_flow(
     """
     _check_rule(rule, n_steps)
     k, pot = _prepare(points, coeffs, convention)
-    pot = _velocity_matrix(pot)
     h = float(t_end) / int(n_steps)
     path = [points]
     x = points
@@ -560,7 +543,6 @@ def flow_frames(
     """
     _check_rule(rule, n_steps)
     k, pot = _prepare(points, coeffs, convention)
-    pot = _velocity_matrix(pot)
     values = [float(t) for t in (times.reshape(-1).tolist() if isinstance(times, torch.Tensor) else times)]
     if not all(math.isfinite(t) for t in values):
         raise ConfigError(f"frame times must be finite, got {values}")
