@@ -51,16 +51,33 @@ def knn_graph(x, k, loop=False):
 
 
 def fps(x, ratio):
-    raise NotImplementedError("farthest-point sampling: not needed below 6000 vertices")
+    raise NotImplementedError("farthest-point sampling is not shimmed: the side-by-side runs do not need it")
 '''
 
 
-def _write_shim(folder: Path) -> None:
+def write_torch_geometric_shim(folder: Path) -> None:
+    """Write a ``torch_geometric`` stand-in (k-d tree ``knn`` / ``knn_graph``) under ``folder`` for the originals."""
     pkg = folder / "torch_geometric"
     pkg.mkdir()
     (pkg / "__init__.py").write_text("")
     (pkg / "io.py").write_text("")
     (pkg / "nn.py").write_text(_SHIM)
+
+
+def prepare_original(src: Path, prefix: str) -> Path:
+    """Make this process ready to import an original checkout ``src``: one thread, the ``torch.solve`` the originals
+    call (removed from torch), the ``torch_geometric`` stand-in in a new temporary folder (returned) and ``src`` first
+    on ``sys.path``; the working folder becomes ``src`` (the originals resolve their files relative to it)."""
+    os.environ["OMP_NUM_THREADS"] = "1"
+    import torch
+
+    torch.set_num_threads(1)
+    torch.solve = lambda b, a: (torch.linalg.solve(a, b), None)
+    shim = Path(tempfile.mkdtemp(prefix=prefix))
+    write_torch_geometric_shim(shim)
+    sys.path[:0] = [str(shim), str(src)]
+    os.chdir(src)
+    return shim
 
 
 def main(argv=None) -> int:
@@ -79,16 +96,10 @@ def main(argv=None) -> int:
         print(f"error: {src}: not a checkout of the original Deep Shells code with its released weights",
               file=sys.stderr)
         return 2
-    os.environ["OMP_NUM_THREADS"] = "1"
+    prepare_original(src, "deep_shells_shim_")
     import numpy as np
     import torch
 
-    torch.set_num_threads(1)
-    torch.solve = lambda b, a: (torch.linalg.solve(a, b), None)
-    shim = Path(tempfile.mkdtemp(prefix="deep_shells_shim_"))
-    _write_shim(shim)
-    sys.path[:0] = [str(shim), str(src)]
-    os.chdir(src)  # the original resolves its checkpoints relative to the working folder
     with contextlib.redirect_stdout(io.StringIO()):
         from main import load_model_matching
         from shape_utils import Shape

@@ -29,11 +29,10 @@ import random
 import resource
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
-from deep_shells_original_query import DEFAULT_GOLDEN, PAIR, _write_shim
+from deep_shells_original_query import DEFAULT_GOLDEN, PAIR, prepare_original
 
 _RAISING_STUB = '''
 def {name}(*args, **kwargs):
@@ -65,17 +64,11 @@ def main(argv=None) -> int:
     if not (src / "model.py").is_file() or not (src / "diffusion_net" / "layers.py").is_file():
         print(f"error: {src}: not a checkout of the original G-MSM code", file=sys.stderr)
         return 2
-    os.environ["OMP_NUM_THREADS"] = "1"
+    shim = prepare_original(src, "gmsm_shim_")
+    _write_stubs(shim)
     import numpy as np
     import torch
 
-    torch.set_num_threads(1)
-    torch.solve = lambda b, a: (torch.linalg.solve(a, b), None)
-    shim = Path(tempfile.mkdtemp(prefix="gmsm_shim_"))
-    _write_shim(shim)
-    _write_stubs(shim)
-    sys.path[:0] = [str(shim), str(src)]
-    os.chdir(src)
     with contextlib.redirect_stdout(io.StringIO()):
         import diffusion_net
         from model import GraphMultiShapeMatching

@@ -45,41 +45,11 @@ from pathlib import Path
 
 import bench_common
 import speed
+from deep_shells_original_query import write_torch_geometric_shim
 
 REPO = Path(__file__).resolve().parents[1]
 RESULT = REPO / "benchmarks" / "results" / "hamiltonian_side_by_side.json"
 CASES = tuple(speed.HAMILTONIAN_SETTINGS)
-
-_SHIM = '''
-import numpy as np
-import torch
-from scipy.spatial import cKDTree
-
-
-def knn(x, y, k):
-    """For each row of y its k nearest rows of x: (2, len(y) * k), rows (y index, x index)."""
-    _, idx = cKDTree(x.detach().double().cpu().numpy()).query(y.detach().double().cpu().numpy(), k=k)
-    idx = np.asarray(idx).reshape(len(y), k)
-    return torch.from_numpy(np.stack([np.repeat(np.arange(len(y)), k), idx.reshape(-1)])).long()
-
-
-def knn_graph(x, k, loop=False):
-    pts = x.detach().double().cpu().numpy()
-    _, idx = cKDTree(pts).query(pts, k=k + 1)
-    return torch.from_numpy(np.stack([idx[:, 1:].reshape(-1), np.repeat(np.arange(len(x)), k)])).long()
-
-
-def fps(x, ratio):
-    raise NotImplementedError("farthest-point sampling: the samples come from the inputs file")
-'''
-
-
-def _write_shim(folder: Path) -> None:
-    pkg = folder / "torch_geometric"
-    pkg.mkdir()
-    (pkg / "__init__.py").write_text("")
-    (pkg / "io.py").write_text("")
-    (pkg / "nn.py").write_text(_SHIM)
 
 
 def write_inputs(golden: Path, path: Path) -> None:
@@ -117,7 +87,7 @@ def original_child(case: str, original: Path, inputs: Path, repeats: int) -> dic
     torch.set_num_threads(1)
     torch.solve = lambda b, a: (torch.linalg.solve(a, b), None)
     shim = Path(tempfile.mkdtemp(prefix="hamiltonian_shim_"))
-    _write_shim(shim)
+    write_torch_geometric_shim(shim)
     sys.path[:0] = [str(shim), str(original / "tools"), str(original / "interpolation")]
     with contextlib.redirect_stdout(io.StringIO()):
         from div_free_interpolation import DivFreeParam, HamiltonianModule

@@ -166,16 +166,23 @@ def test_repeatable_to_round_off_with_several_threads():
     torch.testing.assert_close(a.frames, b.frames, rtol=0, atol=1e-5)
 
 
+def _random_graph(n: int, gen: torch.Generator):
+    """``n`` random float64 points in a box and their 3-nearest-neighbour graph (the step's ``_Graph``)."""
+    from shapecorr.axiomatic.divfree import knn_graph_edges
+    from shapecorr.axiomatic.hamiltonian import _Graph, edge_vectors
+
+    x0 = (0.3 + 0.4 * torch.rand(n, 3, generator=gen)).double()
+    edges, counts = knn_graph_edges(x0, 3)
+    return x0, _Graph(edges, counts.double(), edge_vectors(x0, edges))
+
+
 def test_step_solve_gradients_match_finite_differences():
     """The hand-written backward of the per-step solve (rank-two cotangents) against float64 finite differences."""
-    from shapecorr.axiomatic.divfree import knn_graph_edges
-    from shapecorr.axiomatic.hamiltonian import _Graph, _StepSolve, edge_vectors
+    from shapecorr.axiomatic.hamiltonian import _StepSolve
 
     gen = torch.Generator().manual_seed(3)
     n = 12
-    x0 = (0.3 + 0.4 * torch.rand(n, 3, generator=gen)).double()
-    edges, counts = knn_graph_edges(x0, 3)
-    graph = _Graph(edges, counts.double(), edge_vectors(x0, edges))
+    x0, graph = _random_graph(n, gen)
     cfg = HamiltonianConfig(n_modes=2)
     mid = (x0 + 0.01 * torch.randn(n, 3, generator=gen, dtype=torch.float64)).requires_grad_()
     frames = (torch.eye(3, dtype=torch.float64) + 0.1 * torch.randn(n, 3, 3, generator=gen, dtype=torch.float64))
@@ -224,14 +231,11 @@ def test_step_basis_and_field_derivatives_match_the_divergence_free_module():
 
 def test_force_gradients_match_finite_differences():
     """The hand-written backward of the force from the rotations against float64 finite differences."""
-    from shapecorr.axiomatic.divfree import knn_graph_edges
-    from shapecorr.axiomatic.hamiltonian import _ForceFromRotations, _Graph, edge_vectors
+    from shapecorr.axiomatic.hamiltonian import _ForceFromRotations
 
     gen = torch.Generator().manual_seed(5)
     n = 10
-    x0 = (0.3 + 0.4 * torch.rand(n, 3, generator=gen)).double()
-    edges, counts = knn_graph_edges(x0, 3)
-    graph = _Graph(edges, counts.double(), edge_vectors(x0, edges))
+    x0, graph = _random_graph(n, gen)
     x = (x0 + 0.05 * torch.randn(n, 3, generator=gen, dtype=torch.float64)).requires_grad_()
     rot = (torch.eye(3, dtype=torch.float64) + 0.2 * torch.randn(n, 3, 3, generator=gen, dtype=torch.float64))
     aniso = (torch.eye(3, dtype=torch.float64) + 0.1 * torch.randn(n, 3, 3, generator=gen, dtype=torch.float64))
