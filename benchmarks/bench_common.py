@@ -156,3 +156,44 @@ def run_command(cmd: list[str], threads: int, cwd) -> None:
     proc = subprocess.run(cmd, cwd=cwd, env={**os.environ, "OMP_NUM_THREADS": str(threads)}, check=False)
     if proc.returncode != 0:
         sys.exit(f"command failed with status {proc.returncode}: {' '.join(cmd)}")
+
+
+def run_json_child(cmd: list[str], env: dict, timeout: float, cwd) -> dict:
+    """Run one measuring process and return the JSON record of its last output line, with the 1-minute load
+    average before and after it; ``{"error": <last stderr line>}`` when it fails."""
+    import json
+    import subprocess
+
+    load_before = os.getloadavg()[0]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout, cwd=cwd)
+    if proc.returncode != 0:
+        lines = proc.stderr.strip().splitlines()
+        return {"error": lines[-1] if lines else f"exit {proc.returncode}", "load_average_1min_before": load_before}
+    record = json.loads(proc.stdout.strip().splitlines()[-1])
+    record.update(load_average_1min_before=load_before, load_average_1min_after=os.getloadavg()[0])
+    return record
+
+
+def side_by_side_summary(records: list[dict], cases, codes) -> dict:
+    """Per case and code: the median over the processes of each process's median CPU seconds, the medians of the
+    peak resident sets, the number of processes, and for every code but ``"original"`` the ratio of the original's
+    median to its own (``ratio_original_over_this``)."""
+    summary = {}
+    for case in cases:
+        per_code = {}
+        for code in codes:
+            ok = [r for r in records if r["case"] == case and r["code"] == code and "error" not in r]
+            if ok:
+                per_code[code] = {"cpu_seconds_per_process": [r["cpu_seconds_median"] for r in ok],
+                                  "cpu_seconds_median": statistics.median(r["cpu_seconds_median"] for r in ok),
+                                  "process_max_rss_mb_median": statistics.median(r["process_max_rss_mb"] for r in ok),
+                                  "processes": len(ok)}
+                if all("peak_rss_mb" in r for r in ok):
+                    per_code[code]["peak_rss_mb_median"] = statistics.median(r["peak_rss_mb"] for r in ok)
+        if "original" in per_code:
+            for code, entry in per_code.items():
+                if code != "original":
+                    entry["ratio_original_over_this"] = (per_code["original"]["cpu_seconds_median"]
+                                                         / entry["cpu_seconds_median"])
+        summary[case] = per_code
+    return summary

@@ -1,18 +1,32 @@
-"""CPU seconds of the original Deep Shells test routine on the golden pair, for side-by-side runs with ``speed.py``.
+"""CPU seconds of the original Deep Shells code on the golden pair, for side-by-side runs with ``speed.py``.
 
     git clone https://github.com/marvin-eisenberger/deep-shells /tmp/deep_shells_original
     python benchmarks/deep_shells_original_query.py --original-src /tmp/deep_shells_original --repeats 3
+    python benchmarks/deep_shells_original_query.py --original-src /tmp/deep_shells_original --unit train \
+        --samples /tmp/samples.npz --repeats 3
 
-Runs the original's ``test_model`` (feature Sinkhorn, its OT level at k = 6, then the 40-level ``AssSmoothShells``
-refinement) with its released FAUST + SCAPE weights (``models/Faust_Scape/ckpt_ep20.pth`` of the checkout) on the
-golden inputs of ``speed.py`` (``--golden``: meshes, the original's 510 eigenpairs, lumped mass and SHOT), one
-thread, in this process: one warm-up call, then ``--repeats`` timed calls (process CPU seconds), with autograd
-on as in the original's own test call (``--no-grad`` to switch it off). Nothing of the
-original code is copied: it is imported from ``--original-src``. What it imports but is not installed is supplied
-as a shim package written to a temporary folder: ``torch_geometric.nn.knn`` / ``knn_graph`` by scipy's
-``cKDTree`` (float64, exact; the original uses torch_cluster), and ``torch.solve`` (removed from PyTorch) by
-``torch.linalg.solve``. Prints one JSON line (the medians, every call, the agreement of the map with the golden
-original output, the load average); alternate it with ``speed.py --child deep_shells_query`` (docs/speed.md §3).
+Two units, each on the golden inputs of ``speed.py`` (``--golden``: meshes, the original's 510 eigenpairs, lumped
+mass and SHOT) with the released FAUST + SCAPE weights (``models/Faust_Scape/ckpt_ep20.pth`` of the checkout), one
+thread, in this process: one warm-up call, then ``--repeats`` timed calls (process CPU seconds).
+
+* ``--unit query`` (``speed.py``'s ``deep_shells_query``): the original's ``test_model`` (feature Sinkhorn, its OT
+  level at k = 6, then the 40-level ``AssSmoothShells`` refinement), with autograd on as in the original's own test
+  call (``--no-grad`` to switch it off); reports the agreement of the map with the golden original output.
+* ``--unit train`` (``speed.py``'s ``deep_shells_train``): one pair of the original's training loop
+  (``UnsupervisedShells.train``: the two ``Shape`` objects built from the arrays as ``batch_to_shape`` does, 2000
+  samples per shape, ``match_pair`` over the published shells 6..21, ``backward``), the weights loaded as its
+  ``load_self`` does (the checkpoint's ``par`` included). The gradients are cleared before every pair; the Adam step,
+  which the original's loop takes once per 53 pairs (``batch_size``), is timed once after the pairs
+  (``adam_step_cpu_seconds``). ``--samples`` (an ``.npz`` with ``samples_x``, ``samples_y``) fixes the samples of
+  every pair (the ones ``speed.py``'s step draws, so that both codes compute the same loss); without it the
+  original draws its own (``subsample_random``). Reports the loss of every pair and the norm of the last pair's
+  gradient.
+
+Nothing of the original code is copied: it is imported from ``--original-src``. What it imports but is not
+installed is supplied as a shim package written to a temporary folder: ``torch_geometric.nn.knn`` / ``knn_graph``
+by scipy's ``cKDTree`` (float64, exact; the original uses torch_cluster), and ``torch.solve`` (removed from PyTorch)
+by ``torch.linalg.solve``. Prints one JSON line (the medians, every call, the process's peak resident set, the load
+average); ``benchmarks/originals_side_by_side.py`` alternates it with ``speed.py --child`` (docs/speed.md §3).
 """
 
 from __future__ import annotations
@@ -22,6 +36,7 @@ import contextlib
 import io
 import json
 import os
+import resource
 import statistics
 import sys
 import tempfile
@@ -80,15 +95,90 @@ def prepare_original(src: Path, prefix: str) -> Path:
     return shim
 
 
+def golden_shape(shape_cls, inputs, side: str):
+    """An original ``Shape`` of side ``x`` or ``y`` of the golden inputs, as the originals' ``batch_to_shape`` builds
+    it: vertices, faces, eigenpairs, lumped mass, SHOT, and the coordinates' spectral coefficients (``xi``)."""
+    import numpy as np
+    import torch
+
+    s = shape_cls(torch.from_numpy(inputs[f"{side}_verts"].astype(np.float32)),
+                  torch.from_numpy(inputs[f"{side}_faces"].astype(np.int64)))
+    for attr, key in (("evecs", "evecs"), ("evals", "evals"), ("A", "mass"), ("SHOT", "shot")):
+        setattr(s, attr, torch.from_numpy(inputs[f"{side}_{key}"].astype(np.float32)))
+    s.compute_xi_()
+    return s
+
+
+def timed_calls(fn, repeats: int) -> tuple[list[float], list]:
+    """Process CPU seconds of ``repeats`` calls of ``fn`` after one warm-up call, and every call's result."""
+    cpus, results = [], []
+    for i in range(repeats + 1):  # the first call warms up
+        start = time.process_time()
+        with contextlib.redirect_stdout(io.StringIO()):
+            results.append(fn())
+        if i > 0:
+            cpus.append(time.process_time() - start)
+    return cpus, results
+
+
+def _query(model, shape_cls, inputs, reference, no_grad: bool, repeats: int) -> dict:
+    import torch
+
+    def query():
+        shape_x, shape_y = golden_shape(shape_cls, inputs, "x"), golden_shape(shape_cls, inputs, "y")
+        with torch.set_grad_enabled(not no_grad):
+            return model.test_model(shape_x, shape_y)[0]
+
+    cpus, maps = timed_calls(query, repeats)
+    return {"no_grad": no_grad, "cpu_seconds": cpus,
+            "map_agreement_with_golden_original": float((maps[-1].cpu().numpy() == reference).mean())}
+
+
+def _train(model, shape_cls, inputs, samples: Path | None, repeats: int) -> dict:
+    import numpy as np
+    import torch
+
+    fixed = None
+    if samples is not None:
+        with np.load(samples) as stored:
+            fixed = {side: torch.from_numpy(stored[f"samples_{side}"].astype(np.int64)) for side in "xy"}
+    optimizer = torch.optim.Adam(model.feat_mod.parameters(), lr=model.param.lr)
+    model.feat_mod.train()
+    num = model.param.subsample_num
+
+    def pair():
+        optimizer.zero_grad()
+        shapes = {side: golden_shape(shape_cls, inputs, side) for side in "xy"}
+        for side, shape in shapes.items():
+            if fixed is None:
+                shape.subsample_random(num)
+            else:
+                shape.samples = fixed[side]
+        loss = model.match_pair(shapes["x"], shapes["y"])
+        loss.backward()
+        return float(loss.detach())
+
+    cpus, losses = timed_calls(pair, repeats)
+    grad_norm = float(torch.sqrt(sum((q.grad.double() ** 2).sum() for q in model.feat_mod.parameters())))
+    start = time.process_time()
+    optimizer.step()
+    return {"gradient_norm": grad_norm, "samples": num, "samples_from": str(samples) if samples else "subsample_random",
+            "k_array": list(model.param.k_array), "num_sink": model.param.num_sink, "cpu_seconds": cpus,
+            "losses": losses, "adam_step_cpu_seconds": time.process_time() - start}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--original-src", type=Path, required=True, help="checkout of marvin-eisenberger/deep-shells")
     parser.add_argument("--golden", type=Path, default=None,
                         help="deep_shells_golden folder (default $SHAPECORR_DEEP_SHELLS_GOLDEN, then the shared copy)")
+    parser.add_argument("--unit", choices=("query", "train"), default="query")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-grad", action="store_true",
-                        help="run under torch.no_grad() (the original's own test call does not: its features and "
-                             "Sinkhorn then record autograd graphs)")
+                        help="query: run under torch.no_grad() (the original's own test call does not: its features "
+                             "and Sinkhorn then record autograd graphs)")
+    parser.add_argument("--samples", type=Path, default=None,
+                        help="train: .npz with samples_x, samples_y used for every pair (default: the original draws)")
     args = parser.parse_args(argv)
     golden = args.golden or Path(os.environ.get("SHAPECORR_DEEP_SHELLS_GOLDEN", DEFAULT_GOLDEN))
     src = args.original_src.resolve()
@@ -96,38 +186,32 @@ def main(argv=None) -> int:
         print(f"error: {src}: not a checkout of the original Deep Shells code with its released weights",
               file=sys.stderr)
         return 2
+    samples = args.samples.resolve() if args.samples else None
     prepare_original(src, "deep_shells_shim_")
     import numpy as np
-    import torch
 
     with contextlib.redirect_stdout(io.StringIO()):
         from main import load_model_matching
+        from param import save_path
         from shape_utils import Shape
+        from unsupervised_shells import UnsupervisedShells
 
-        model = load_model_matching("Faust_Scape", num_epoch=20)
+        if args.unit == "query":
+            model = load_model_matching("Faust_Scape", num_epoch=20)
+        else:  # a training run: DeepParam, the checkpoint's weights and parameters, a save path (no plots)
+            model = UnsupervisedShells(save_path=save_path("side_by_side_unused"))
+            model.load_self(save_path("Faust_Scape"), 20)
     inputs = np.load(golden / f"inputs_{PAIR}.npz")
-    reference = np.load(golden / f"original_output_{PAIR}.npz")["map_x_to_y"]
-
-    def shape(side):
-        s = Shape(torch.from_numpy(inputs[f"{side}_verts"].astype(np.float32)),
-                  torch.from_numpy(inputs[f"{side}_faces"].astype(np.int64)))
-        for attr, key in (("evecs", "evecs"), ("evals", "evals"), ("A", "mass"), ("SHOT", "shot")):
-            setattr(s, attr, torch.from_numpy(inputs[f"{side}_{key}"].astype(np.float32)))
-        s.compute_xi_()
-        return s
-
-    cpus = []
-    for i in range(args.repeats + 1):  # the first call warms up
-        shape_x, shape_y = shape("x"), shape("y")  # test_model changes the shapes' sampling
-        start = time.process_time()
-        with torch.set_grad_enabled(not args.no_grad), contextlib.redirect_stdout(io.StringIO()):
-            map_x_to_y, _ = model.test_model(shape_x, shape_y)
-        if i > 0:
-            cpus.append(time.process_time() - start)
-    print(json.dumps({"case": "deep_shells_query", "code": "original", "original_src": str(src), "threads": 1,
-                      "no_grad": args.no_grad,
-                      "cpu_seconds": cpus, "cpu_seconds_median": statistics.median(cpus),
-                      "map_agreement_with_golden_original": float((map_x_to_y.cpu().numpy() == reference).mean()),
+    if args.unit == "query":
+        reference = np.load(golden / f"original_output_{PAIR}.npz")["map_x_to_y"]
+        record = _query(model, Shape, inputs, reference, args.no_grad, args.repeats)
+        case = "deep_shells_query"
+    else:
+        record = _train(model, Shape, inputs, samples, args.repeats)
+        case = "deep_shells_train"
+    print(json.dumps({"case": case, "code": "original", "original_src": str(src), "threads": 1, **record,
+                      "cpu_seconds_median": statistics.median(record["cpu_seconds"]),
+                      "process_max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                       "load_average": list(os.getloadavg())}))
     return 0
 

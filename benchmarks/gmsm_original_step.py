@@ -1,21 +1,31 @@
-"""CPU seconds of one training step of the original G-MSM code on the golden pair, side by side with ``speed.py``.
+"""CPU seconds of the original G-MSM code on the golden pair (training step or query), side by side with ``speed.py``.
 
     git clone https://github.com/marvin-eisenberger/gmsm-matching /tmp/gmsm_original
     python benchmarks/gmsm_original_step.py --original-src /tmp/gmsm_original --repeats 3
+    python benchmarks/gmsm_original_step.py --original-src /tmp/gmsm_original --unit query --repeats 3
 
-The unit is ``speed.py``'s ``gmsm_train``: the original's ``GraphMultiShapeMatching`` (its DiffusionNet feature module,
-width 128, 4 blocks, k_eig 128; its ``DeepParam``: 2000 random samples per shape, shells 6..21, 3 Sinkhorn rounds)
-runs ``subsample_random`` on both shapes, ``match_pair`` (features and the hierarchical matching), ``backward`` and
-an Adam step, on the golden inputs of ``speed.py`` (``--golden``: meshes, the original Deep Shells' 510 eigenpairs,
-lumped mass and SHOT), one thread, in this process: one warm-up step, then ``--repeats`` timed steps (process CPU
+Both units run the original's ``GraphMultiShapeMatching`` (its DiffusionNet feature module, width 128, 4 blocks,
+k_eig 128; its ``DeepParam``: 2000 random samples per shape, shells 6..21, 3 Sinkhorn rounds) with its seed-0 initial
+weights on the golden inputs of ``speed.py`` (``--golden``: meshes, the original Deep Shells' 510 eigenpairs, lumped
+mass and SHOT), one thread, in this process: one warm-up call, then ``--repeats`` timed calls (process CPU
 seconds). The DiffusionNet operators are computed once before the timing by the original's own
-``diffusion_net.geometry.get_operators`` (as its dataset does at load). Nothing of the original code is copied: it is
-imported from ``--original-src``. What it imports but is not installed is supplied by packages written to a
-temporary folder: ``torch_geometric.nn`` (``knn`` / ``knn_graph`` by scipy's ``cKDTree``, as in
-``deep_shells_original_query.py``), and ``sklearn.neighbors`` and ``python_tsp`` stand-ins that raise when called
-(imported at module level, never called by a training step); ``torch.solve`` (removed from PyTorch) is
-``torch.linalg.solve``. Prints one JSON line (the medians, every step, the losses, the process's peak resident set,
-the load average); alternate it with ``speed.py --child gmsm_train`` (docs/speed.md §3).
+``diffusion_net.geometry.get_operators`` (as its dataset does at load).
+
+* ``--unit train`` (``speed.py``'s ``gmsm_train``): ``subsample_random`` on both shapes, ``match_pair`` (features and
+  the hierarchical matching), ``backward`` and an Adam step; reports the losses.
+* ``--unit query`` (``speed.py``'s ``gmsm_query``): ``test_model_fast``, the one-level query its validation and
+  shape-graph construction run for every pair (``get_all_matches``: under ``torch.no_grad``, the feature module in
+  training mode as ``load_self`` leaves it, so dropout is on): 2000 random samples, ``match_pair``, then one
+  ``AssSmoothShells`` level at k = 21 at full resolution (k-d tree nearest neighbours through the shim). The two
+  ``Shape`` objects are built from the arrays in every call, as its ``batch_to_shape`` does per pair. Reports the
+  two losses it returns (the sampled level energy mean, the one-level alignment) and the maps' sizes.
+
+Nothing of the original code is copied: it is imported from ``--original-src``. What it imports but is not installed
+is supplied by packages written to a temporary folder: ``torch_geometric.nn`` (``knn`` / ``knn_graph`` by scipy's
+``cKDTree``, as in ``deep_shells_original_query.py``), and ``sklearn.neighbors`` and ``python_tsp`` stand-ins that
+raise when called (imported at module level, never called by these units); ``torch.solve`` (removed from PyTorch)
+is ``torch.linalg.solve``. Prints one JSON line (the medians, every call, the process's peak resident set, the load
+average); ``benchmarks/originals_side_by_side.py`` alternates it with ``speed.py --child`` (docs/speed.md §3).
 """
 
 from __future__ import annotations
@@ -29,14 +39,13 @@ import random
 import resource
 import statistics
 import sys
-import time
 from pathlib import Path
 
-from deep_shells_original_query import DEFAULT_GOLDEN, PAIR, prepare_original
+from deep_shells_original_query import DEFAULT_GOLDEN, PAIR, golden_shape, prepare_original, timed_calls
 
 _RAISING_STUB = '''
 def {name}(*args, **kwargs):
-    raise NotImplementedError("stand-in of the side-by-side benchmark: not used by a G-MSM training step")
+    raise NotImplementedError("stand-in of the side-by-side benchmark: not used by a G-MSM training step or query")
 '''
 #: Modules the original imports at module level that a training step never calls: module -> function names.
 _STUBS = {"sklearn/neighbors.py": ("KDTree", "NearestNeighbors"),
@@ -57,6 +66,7 @@ def main(argv=None) -> int:
     parser.add_argument("--original-src", type=Path, required=True, help="checkout of marvin-eisenberger/gmsm-matching")
     parser.add_argument("--golden", type=Path, default=None,
                         help="deep_shells_golden folder (default $SHAPECORR_DEEP_SHELLS_GOLDEN, then the shared copy)")
+    parser.add_argument("--unit", choices=("train", "query"), default="train")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
     golden = args.golden or Path(os.environ.get("SHAPECORR_DEEP_SHELLS_GOLDEN", DEFAULT_GOLDEN))
@@ -74,14 +84,13 @@ def main(argv=None) -> int:
         from model import GraphMultiShapeMatching
         from utils.shape_utils import Shape
     inputs = np.load(golden / f"inputs_{PAIR}.npz")
+    operators = {}
 
     def shape(side):
-        s = Shape(torch.from_numpy(inputs[f"{side}_verts"].astype(np.float32)),
-                  torch.from_numpy(inputs[f"{side}_faces"].astype(np.int64)))
-        for attr, key in (("evecs", "evecs"), ("evals", "evals"), ("A", "mass"), ("SHOT", "shot")):
-            setattr(s, attr, torch.from_numpy(inputs[f"{side}_{key}"].astype(np.float32)))
-        s.diffusion_net_ops = list(diffusion_net.geometry.get_operators(s.vert, s.triv))
-        s.compute_xi_()
+        s = golden_shape(Shape, inputs, side)
+        if side not in operators:
+            operators[side] = list(diffusion_net.geometry.get_operators(s.vert, s.triv))
+        s.diffusion_net_ops = operators[side]
         return s
 
     random.seed(0)  # the original draws its samples with Python's random module
@@ -101,16 +110,16 @@ def main(argv=None) -> int:
         model.optimizer.zero_grad()
         return float(loss.detach())
 
-    cpus, losses = [], []
-    for i in range(args.repeats + 1):  # the first step warms up
-        start = time.process_time()
-        with contextlib.redirect_stdout(io.StringIO()):
-            losses.append(step())
-        if i > 0:
-            cpus.append(time.process_time() - start)
-    print(json.dumps({"case": "gmsm_train", "code": "original", "original_src": str(src), "threads": 1,
-                      "samples": num, "cpu_seconds": cpus, "cpu_seconds_median": statistics.median(cpus),
-                      "losses": losses, "process_max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    def query():
+        with torch.no_grad():
+            map_x_to_y, map_y_to_x, losses = model.test_model_fast(shape("x"), shape("y"))
+        return {"losses": losses, "map_sizes": [int(map_x_to_y.numel()), int(map_y_to_x.numel())]}
+
+    cpus, values = timed_calls(step if args.unit == "train" else query, args.repeats)
+    record = {"losses": values} if args.unit == "train" else {"query_outputs": values}
+    print(json.dumps({"case": f"gmsm_{args.unit}", "code": "original", "original_src": str(src), "threads": 1,
+                      "samples": num, "cpu_seconds": cpus, "cpu_seconds_median": statistics.median(cpus), **record,
+                      "process_max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                       "load_average": list(os.getloadavg())}))
     return 0
 

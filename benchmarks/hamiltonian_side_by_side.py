@@ -127,17 +127,6 @@ def _commit(tree: Path) -> str | None:
     return out.stdout.strip() if out.returncode == 0 else None
 
 
-def _run(cmd: list[str], env: dict, timeout: float) -> dict:
-    load_before = os.getloadavg()[0]
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout, cwd=REPO)
-    if proc.returncode != 0:
-        lines = proc.stderr.strip().splitlines()
-        return {"error": lines[-1] if lines else f"exit {proc.returncode}", "load_average_1min_before": load_before}
-    record = json.loads(proc.stdout.strip().splitlines()[-1])
-    record.update(load_average_1min_before=load_before, load_average_1min_after=os.getloadavg()[0])
-    return record
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--original", type=Path, required=True, help="checkout of the original code")
@@ -183,29 +172,14 @@ def main(argv=None) -> int:
                            str(golden), "--device", "cpu", "--threads", "1", "--repeats", str(args.repeats)]
                     runs.append((label, cmd, dict(env, PYTHONPATH=str(tree))))
                 for code, cmd, child_env in runs:
-                    record = _run(cmd, child_env, args.timeout)
+                    record = bench_common.run_json_child(cmd, child_env, args.timeout, REPO)
                     record.update(case=case, code=code, round=rnd)
                     records.append(record)
                     shown = record.get("error") or (f"cpu {record['cpu_seconds_median']:.3f} s, peak "
                                                     f"{record['peak_rss_mb']:.0f} MB, value {record['value']:.6g}")
                     print(f"{case} round {rnd} {code}: {shown} "
                           f"(load {record['load_average_1min_before']:.2f})", flush=True)
-    summary = {}
-    for case in args.cases:
-        per_code = {}
-        for code in ["original", *labels]:
-            ok = [r for r in records if r["case"] == case and r["code"] == code and "error" not in r]
-            if ok:
-                per_code[code] = {"cpu_seconds_median": statistics.median(r["cpu_seconds_median"] for r in ok),
-                                  "peak_rss_mb_median": statistics.median(r["peak_rss_mb"] for r in ok),
-                                  "process_max_rss_mb_median": statistics.median(r["process_max_rss_mb"] for r in ok),
-                                  "processes": len(ok)}
-        if "original" in per_code:
-            for code, entry in per_code.items():
-                if code != "original":
-                    entry["ratio_original_over_this"] = (per_code["original"]["cpu_seconds_median"]
-                                                         / entry["cpu_seconds_median"])
-        summary[case] = per_code
+    summary = bench_common.side_by_side_summary(records, args.cases, ["original", *labels])
     report = {"benchmark": "hamiltonian_side_by_side",
               "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
               "command": " ".join([Path(sys.executable).name, *sys.argv]), "original": str(original),

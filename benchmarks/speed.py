@@ -145,9 +145,16 @@ def _golden_pair(golden: Path, device, diffusion: bool = False):
 
 
 def _learned_unit(model, pair, train: bool, optimizer=None):
-    """A training step (``training_step`` + backward, + the optimizer's step if given) or a query of ``pair``."""
+    """A training step (``training_step`` + backward, + the optimizer's step if given; returns the loss) or a query
+    of ``pair`` (returns the pair cost the matcher reports, G-MSM's alignment cost, else the map's size)."""
     if not train:
-        return lambda: int(model.match(pair.x, pair.y).p2p.numel())
+        from shapecorr.eval.multi_shape import PAIR_COST_KEY
+
+        def query():
+            result = model.match(pair.x, pair.y)
+            cost = result.extras.get(PAIR_COST_KEY)
+            return float(cost) if cost is not None else int(result.p2p.numel())
+        return query
 
     def step():
         model.zero_grad(set_to_none=True)
@@ -168,12 +175,18 @@ def _published_loss(model: str):
         return instantiate(compose("train", overrides=[f"model={model}"]).model.loss, _convert_="object")
 
 
-def _deep_shells(golden: Path, device, train: bool):
+def deep_shells_model(golden: Path, device, train: bool, layer=None):
+    """The Deep Shells model of the two Deep Shells cases: published weights and loss, :data:`TRAIN_SAMPLES`
+    samples, the published layer settings (or ``layer``, a ``DeepShellsConfig``)."""
     from shapecorr.models.deep_shells import DeepShells
 
-    model = DeepShells(num_samples=TRAIN_SAMPLES, pretrained=golden / WEIGHTS,
-                       loss=_published_loss("deep_shells")).to(device).train(train)
-    return _learned_unit(model, _golden_pair(golden, device), train)
+    extra = {} if layer is None else {"layer": layer}
+    return DeepShells(num_samples=TRAIN_SAMPLES, pretrained=golden / WEIGHTS, loss=_published_loss("deep_shells"),
+                      **extra).to(device).train(train)
+
+
+def _deep_shells(golden: Path, device, train: bool):
+    return _learned_unit(deep_shells_model(golden, device, train), _golden_pair(golden, device), train)
 
 
 def _gmsm(golden: Path, device, train: bool):
