@@ -18,7 +18,8 @@ seconds). The DiffusionNet operators are computed once before the timing by the 
   training mode as ``load_self`` leaves it, so dropout is on): 2000 random samples, ``match_pair``, then one
   ``AssSmoothShells`` level at k = 21 at full resolution (k-d tree nearest neighbours through the shim). The two
   ``Shape`` objects are built from the arrays in every call, as its ``batch_to_shape`` does per pair. Reports the
-  two losses it returns (the sampled level energy mean, the one-level alignment) and the maps' sizes.
+  two losses it returns (the sampled level energy mean, the one-level alignment) and the maps' sizes;
+  ``--save-maps`` writes the last call's maps to an ``.npz``.
 
 Nothing of the original code is copied: it is imported from ``--original-src``. What it imports but is not installed
 is supplied by packages written to a temporary folder: ``torch_geometric.nn`` (``knn`` / ``knn_graph`` by scipy's
@@ -68,12 +69,15 @@ def main(argv=None) -> int:
                         help="deep_shells_golden folder (default $SHAPECORR_DEEP_SHELLS_GOLDEN, then the shared copy)")
     parser.add_argument("--unit", choices=("train", "query"), default="train")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--save-maps", type=Path, default=None,
+                        help="query: write the last call's maps (map_x_to_y, map_y_to_x) to this .npz")
     args = parser.parse_args(argv)
     golden = args.golden or Path(os.environ.get("SHAPECORR_DEEP_SHELLS_GOLDEN", DEFAULT_GOLDEN))
     src = args.original_src.resolve()
     if not (src / "model.py").is_file() or not (src / "diffusion_net" / "layers.py").is_file():
         print(f"error: {src}: not a checkout of the original G-MSM code", file=sys.stderr)
         return 2
+    save_maps = args.save_maps.resolve() if args.save_maps else None  # before the working folder changes
     shim = prepare_original(src, "gmsm_shim_")
     _write_stubs(shim)
     import numpy as np
@@ -110,12 +114,16 @@ def main(argv=None) -> int:
         model.optimizer.zero_grad()
         return float(loss.detach())
 
+    maps = {}
+
     def query():
         with torch.no_grad():
-            map_x_to_y, map_y_to_x, losses = model.test_model_fast(shape("x"), shape("y"))
-        return {"losses": losses, "map_sizes": [int(map_x_to_y.numel()), int(map_y_to_x.numel())]}
+            maps["map_x_to_y"], maps["map_y_to_x"], losses = model.test_model_fast(shape("x"), shape("y"))
+        return {"losses": losses, "map_sizes": [int(m.numel()) for m in maps.values()]}
 
     cpus, values = timed_calls(step if args.unit == "train" else query, args.repeats)
+    if save_maps is not None and maps:
+        np.savez(save_maps, **{key: m.cpu().numpy() for key, m in maps.items()})
     record = {"losses": values} if args.unit == "train" else {"query_outputs": values}
     print(json.dumps({"case": f"gmsm_{args.unit}", "code": "original", "original_src": str(src), "threads": 1,
                       "samples": num, "cpu_seconds": cpus, "cpu_seconds_median": statistics.median(cpus), **record,

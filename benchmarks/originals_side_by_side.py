@@ -96,24 +96,76 @@ def deep_shells_check(golden: Path) -> dict:
             "gradient_norm": float(torch.sqrt(sum((g ** 2).sum() for g in grads))), "cpu_seconds": cpus}
 
 
-def _checks(case: str, records: list[dict], ours_original_settings: dict | None) -> dict:
+def map_errors(map_x_to_y, verts_y, faces_y, corres: Path) -> dict:
+    """Euclidean error of a map ``x -> y`` at the FAUST_r reference points (``corres``: folder of the ``.vts``
+    files of the golden pair), divided by sqrt(area of Y): mean and median."""
+    import numpy as np
+
+    from shapecorr.eval.metrics import surface_area
+
+    ref = [np.loadtxt(corres / f"{name}.vts", dtype=np.int64) - 1 for name in speed.PAIR.split("__")]
+    err = np.linalg.norm(verts_y[np.asarray(map_x_to_y)[ref[0]]] - verts_y[ref[1]], axis=1)
+    err = err / np.sqrt(surface_area(verts_y, faces_y))
+    return {"mean": float(err.mean()), "median": float(np.median(err))}
+
+
+def gmsm_check(golden: Path, corres: Path | None) -> dict:
+    """shapecorr's G-MSM query of the golden pair as ``gmsm_query`` runs it and with dropout on (the original's
+    queries keep the network in training mode): pair cost, map errors (:func:`map_errors`) and CPU seconds of three
+    queries each (this process, one thread); the error of the golden original Deep Shells map for scale."""
+    import numpy as np
+    import torch
+
+    torch.set_num_threads(1)
+    device = torch.device("cpu")
+    pair = speed._golden_pair(golden, device, diffusion=True)
+    with np.load(golden / f"inputs_{speed.PAIR}.npz") as inputs:
+        verts_y, faces_y = inputs["y_verts"].astype(np.float64), inputs["y_faces"]
+    out = {}
+    if corres is not None:
+        with np.load(golden / f"original_output_{speed.PAIR}.npz") as reference:
+            out["golden_original_deep_shells_map_errors"] = map_errors(reference["map_x_to_y"], verts_y, faces_y,
+                                                                       corres)
+    for label, dropout in (("as_timed", False), ("dropout_at_test", True)):
+        model = speed.gmsm_model(golden, device, False, dropout_at_test=dropout)
+        cpus, costs = [], []
+        for _ in range(3):
+            start = time.process_time()
+            result = model.match(pair.x, pair.y)
+            cpus.append(time.process_time() - start)
+            costs.append(float(result.extras["pair_cost"]))
+        out[label] = {"cpu_seconds": cpus, "pair_costs": costs}
+        if corres is not None:
+            out[label]["map_errors"] = map_errors(result.p2p.numpy(), verts_y, faces_y, corres)
+    return out
+
+
+def _checks(case: str, records: list[dict], ours: dict | None, maps: Path | None = None,
+            corres: Path | None = None, golden: Path | None = None) -> dict:
     originals = [r for r in records if r["case"] == case and r["code"] == "original" and "error" not in r]
-    ours = [r for r in records if r["case"] == case and r["code"] == "shapecorr" and "error" not in r]
-    if not originals or not ours:
+    timed = [r for r in records if r["case"] == case and r["code"] == "shapecorr" and "error" not in r]
+    if not originals or not timed:
         return {}
     if case == "deep_shells_train":
         loss, grad = originals[0]["losses"][0], originals[0]["gradient_norm"]
         out = {"original_loss": loss, "original_gradient_norm": grad,
-               "shapecorr_published_config_loss": ours[0]["value"]}
-        if ours_original_settings:
-            out.update(shapecorr_original_settings=ours_original_settings,
-                       loss_relative_difference=abs(ours_original_settings["loss"] - loss) / abs(loss),
-                       gradient_norm_relative_difference=abs(ours_original_settings["gradient_norm"] - grad) / grad)
+               "shapecorr_published_config_loss": timed[0]["value"]}
+        if ours:
+            out.update(shapecorr_original_settings=ours,
+                       loss_relative_difference=abs(ours["loss"] - loss) / abs(loss),
+                       gradient_norm_relative_difference=abs(ours["gradient_norm"] - grad) / grad)
         return out
     if case == "gmsm_query":
-        return {"original_pair_costs": [q["losses"][1] for r in originals for q in r["query_outputs"]],
-                "original_level_energy_means": [q["losses"][0] for r in originals for q in r["query_outputs"]],
-                "shapecorr_pair_costs": [r["value"] for r in ours]}
+        out = {"original_pair_costs": [q["losses"][1] for r in originals for q in r["query_outputs"]],
+               "original_level_energy_means": [q["losses"][0] for r in originals for q in r["query_outputs"]],
+               "shapecorr_pair_costs_timed": [r["value"] for r in timed], "shapecorr": ours}
+        if maps is not None and corres is not None and maps.is_file():
+            import numpy as np
+
+            with np.load(golden / f"inputs_{speed.PAIR}.npz") as inputs, np.load(maps) as stored:
+                out["original_last_map_errors"] = map_errors(stored["map_x_to_y"], inputs["y_verts"].astype(
+                    np.float64), inputs["y_faces"], corres)
+        return out
     return {}
 
 
@@ -140,16 +192,21 @@ def main(argv=None) -> int:
         sources[case] = src.resolve()
     golden = args.golden or Path(os.environ.get("SHAPECORR_DEEP_SHELLS_GOLDEN", speed.DEFAULT_GOLDEN))
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    faust_r = os.environ.get("SHAPECORR_FAUST_R")
+    corres = Path(faust_r) / "corres" if faust_r else None  # the map errors of the G-MSM check need it
     records, load_start = [], os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="originals_sbs_") as tmp:
-        samples_path = Path(tmp) / "deep_shells_samples.npz"
-        samples = write_deep_shells_samples(golden, samples_path) if "deep_shells_train" in args.cases else None
+        samples_path, maps_path = Path(tmp) / "deep_shells_samples.npz", Path(tmp) / "gmsm_original_maps.npz"
+        if "deep_shells_train" in args.cases:
+            write_deep_shells_samples(golden, samples_path)
         for case in args.cases:
             _, script, unit = ORIGINALS[case]
             original = [sys.executable, str(HERE / script), "--original-src", str(sources[case]), "--golden",
                         str(golden), "--unit", unit, "--repeats", str(args.repeats)]
             if case == "deep_shells_train":
                 original += ["--samples", str(samples_path)]
+            if case == "gmsm_query":
+                original += ["--save-maps", str(maps_path)]
             ours = speed.child_command(case, golden, "cpu", 1, args.repeats)
             for rnd in range(args.rounds):
                 for code, cmd in (("original", original), ("shapecorr", ours)):
@@ -161,23 +218,25 @@ def main(argv=None) -> int:
                                                     f"{record['process_max_rss_mb']:.0f} MB")
                     print(f"{case} round {rnd} {code:9s}: {shown} (load {record['load_average_1min_before']:.2f})",
                           flush=True)
-    ours_original_settings = deep_shells_check(golden) if samples is not None else None
-    summary = bench_common.side_by_side_summary(records, args.cases, ["original", "shapecorr"])
-    for case, entry in summary.items():
-        recorded = speed.ORIGINAL_REFERENCE.get(case, {}).get("seconds")
-        if "shapecorr" in entry:
-            entry["target_ratio"] = speed.TARGET_RATIO.get(case)
-            entry["original_recorded_seconds"] = recorded
-            if recorded:
-                entry["ratio_recorded_original_over_shapecorr"] = recorded / entry["shapecorr"]["cpu_seconds_median"]
-            if "original" in entry:
-                per_round = [o["cpu_seconds_median"] / s["cpu_seconds_median"] for o, s in zip(
-                    *([r for r in records if r["case"] == case and r["code"] == c and "error" not in r]
-                      for c in ("original", "shapecorr")))]
-                entry["ratio_per_round"] = per_round
-                entry["memory_ratio_process_max"] = (entry["original"]["process_max_rss_mb_median"]
-                                                     / entry["shapecorr"]["process_max_rss_mb_median"])
-        entry["checks"] = _checks(case, records, ours_original_settings if case == "deep_shells_train" else None)
+        ours_checked = {"deep_shells_train": deep_shells_check(golden) if "deep_shells_train" in args.cases else None,
+                        "gmsm_query": gmsm_check(golden, corres) if "gmsm_query" in args.cases else None}
+        summary = bench_common.side_by_side_summary(records, args.cases, ["original", "shapecorr"])
+        for case, entry in summary.items():
+            recorded = speed.ORIGINAL_REFERENCE.get(case, {}).get("seconds")
+            if "shapecorr" in entry:
+                entry["target_ratio"] = speed.TARGET_RATIO.get(case)
+                entry["original_recorded_seconds"] = recorded
+                if recorded:
+                    entry["ratio_recorded_original_over_shapecorr"] = (recorded
+                                                                       / entry["shapecorr"]["cpu_seconds_median"])
+                if "original" in entry:
+                    per_round = [o["cpu_seconds_median"] / s["cpu_seconds_median"] for o, s in zip(
+                        *([r for r in records if r["case"] == case and r["code"] == c and "error" not in r]
+                          for c in ("original", "shapecorr")))]
+                    entry["ratio_per_round"] = per_round
+                    entry["memory_ratio_process_max"] = (entry["original"]["process_max_rss_mb_median"]
+                                                         / entry["shapecorr"]["process_max_rss_mb_median"])
+            entry["checks"] = _checks(case, records, ours_checked.get(case), maps_path, corres, golden)
     report = {
         "benchmark": "originals_side_by_side",
         "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),

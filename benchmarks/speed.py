@@ -189,15 +189,23 @@ def _deep_shells(golden: Path, device, train: bool):
     return _learned_unit(deep_shells_model(golden, device, train), _golden_pair(golden, device), train)
 
 
-def _gmsm(golden: Path, device, train: bool):
+def gmsm_model(golden: Path, device, train: bool, **options):
+    """The G-MSM model of the two G-MSM cases: seed-0 DiffusionNet of the G-MSM code, :data:`TRAIN_SAMPLES` samples,
+    the published loss; ``options`` go to ``GMSM`` (e.g. ``dropout_at_test``)."""
     import torch
 
     from shapecorr.models.gmsm import GMSM
     from shapecorr.nn.diffusion_net import DiffusionNetBackbone
 
     torch.manual_seed(0)
-    model = GMSM(backbone=DiffusionNetBackbone(), num_samples=TRAIN_SAMPLES, loss=_published_loss("gmsm"))
-    model = model.to(device).train(train)
+    model = GMSM(backbone=DiffusionNetBackbone(), num_samples=TRAIN_SAMPLES, loss=_published_loss("gmsm"), **options)
+    return model.to(device).train(train)
+
+
+def _gmsm(golden: Path, device, train: bool):
+    import torch
+
+    model = gmsm_model(golden, device, train)
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-4) if train else None
     return _learned_unit(model, _golden_pair(golden, device, diffusion=True), train, optimizer)
 
