@@ -106,9 +106,10 @@ ORIGINAL_REFERENCE = {
 ORIGINAL_SIDE_BY_SIDE = {
     "deep_shells_train": {"original_seconds": 8.37, "shapecorr_seconds": 0.339,
                           "result": "originals_side_by_side.json"},
-    "deep_shells_query": {"original_seconds": 7.73, "shapecorr_seconds": 2.45,
-                          "result": "deep_shells_query_side_by_side.json"},
-    "gmsm_train": {"original_seconds": 9.88, "shapecorr_seconds": 0.975, "result": "gmsm_train_side_by_side.json"},
+    "deep_shells_query": {"original_seconds": 6.79, "shapecorr_seconds": 1.934,
+                          "result": "originals_side_by_side_4cases.json"},
+    "gmsm_train": {"original_seconds": 9.06, "shapecorr_seconds": 0.884,
+                   "result": "originals_side_by_side_4cases.json"},
     "gmsm_query": {"original_seconds": 4.85, "shapecorr_seconds": 0.287, "result": "originals_side_by_side.json"},
     "hamiltonian_small": {"original_seconds": 1.145, "shapecorr_seconds": 0.211,
                           "result": "hamiltonian_side_by_side.json"},
