@@ -352,9 +352,10 @@ def trimmed_functional_map(evecs_x: torch.Tensor, evecs_y: torch.Tensor, mass_x:
 
     A low-frequency functional map cannot follow one limb laid onto the other side while the rest of the body is
     right, so that limb's pairs keep large residuals (:func:`functional_map_residuals`) and drop out. Each of
-    ``steps`` times: the residuals of the kept vertices under the current ``C``, their median ``s`` (over the
-    vertices of both sides, unweighted), and the refit on the kept vertices whose residual is below
-    ``trim * s``. A step that would leave fewer than ``k`` vertices on a side keeps the previous fit.
+    at most ``steps`` times: the residuals of all of ``keep_x``, ``keep_y`` under the current ``C``, their median
+    ``s`` (over the vertices of both sides, unweighted), and the refit on those whose residual is below
+    ``trim * s`` (``trim = 1``: the better half, a least-trimmed-squares fit). It stops early when the selection
+    repeats; a step that would leave fewer than ``k`` vertices on a side keeps the previous fit.
 
     Parameters
     ----------
@@ -384,7 +385,7 @@ def trimmed_functional_map(evecs_x: torch.Tensor, evecs_y: torch.Tensor, mass_x:
         res_x, res_y = functional_map_residuals(evecs_x, evecs_y, fmap, p2p, p2p_inv)
         scale = torch.cat([res_x[keep_x], res_y[keep_y]]).median()
         new_x, new_y = keep_x & (res_x < trim * scale), keep_y & (res_y < trim * scale)
-        if int(new_x.sum()) < k or int(new_y.sum()) < k:
+        if int(new_x.sum()) < k or int(new_y.sum()) < k or (torch.equal(new_x, in_x) and torch.equal(new_y, in_y)):
             break
         in_x, in_y = new_x, new_y
         fmap = functional_map_from_maps(evecs_x, evecs_y, mass_x, mass_y, p2p, p2p_inv, in_x, in_y, orthogonal)
@@ -483,8 +484,8 @@ class DivFreeMatcher:
         extraction_consistency: float = 0.03,
         extraction_iterations: int = 2,
         extraction_fit: str = "orthogonal",
-        extraction_trim: float = 2.0,
-        extraction_trim_steps: int = 5,
+        extraction_trim: float = 1.0,
+        extraction_trim_steps: int = 10,
     ):
         modes = [int(m) for m in (modes if isinstance(modes, (list, tuple)) else [modes])]
         n = len(modes)

@@ -144,7 +144,7 @@ def test_config_has_published_defaults():
     assert matcher.descriptors == ("wks",) and matcher.levels[0].descriptor_weight == 2.0
     assert matcher.required_operators == {"wks": {}, "shot": {}, "eigenbasis": {"k": 509}}
     assert (matcher.extraction, matcher.extraction_k, matcher.extraction_iterations) == ("spectral", 10, 2)
-    assert (matcher.extraction_fit, matcher.extraction_trim, matcher.extraction_trim_steps) == ("orthogonal", 2.0, 5)
+    assert (matcher.extraction_fit, matcher.extraction_trim, matcher.extraction_trim_steps) == ("orthogonal", 1.0, 10)
     assert DivFreeMatcher(prealign="pca").required_operators == {"wks": {}, "eigenbasis": {"k": 10}}
     assert DivFreeMatcher(prealign="pca", descriptor="shot", extraction="flow").required_operators == {"shot": {}}
 
@@ -349,13 +349,13 @@ def test_trimmed_extraction_undoes_a_swap_that_passes_the_round_trip():
     keep_x, keep_y = cycle_consistent(bx, by, p2p, p2p_inv, 0.03)
     assert bool(keep_x.all()) and bool(keep_y.all())  # the round trip cannot see the swap
     phi_x, phi_y = x.evecs[:, :10], y.evecs[:, :10]
-    fmap, in_x, in_y = trimmed_functional_map(phi_x, phi_y, x.mass, y.mass, p2p, p2p_inv, keep_x, keep_y, 2.0, 5)
+    fmap, in_x, in_y = trimmed_functional_map(phi_x, phi_y, x.mass, y.mass, p2p, p2p_inv, keep_x, keep_y, 1.0, 10)
     assert fmap.shape == (10, 10) and fmap.dtype == torch.float64
     torch.testing.assert_close(fmap.T @ fmap, torch.eye(10, dtype=torch.float64))
     # the swapped pairs are left out (on both sides), and the rest is fitted exactly
     assert not bool(in_x[torch.from_numpy(swapped)].any()) and not bool(in_y[torch.from_numpy(swapped[np.argsort(
         perm)])].any())
-    assert in_x.float().mean() > 0.8
+    assert 0.4 < in_x.float().mean() < 0.6  # the better half
     res_x, _ = functional_map_residuals(phi_x, phi_y, fmap, p2p, p2p_inv)
     assert res_x[~swapped].max() < 1e-6 and res_x[swapped].min() > 1.0
     moved = by[p2p]  # the deformed x where the maps say: the coordinates alone keep the swap
@@ -363,7 +363,7 @@ def test_trimmed_extraction_undoes_a_swap_that_passes_the_round_trip():
     emb_y = torch.cat([by, 0.1 * vertex_normals(by, y.faces)], 1)
     before = np.linalg.norm(vy[p2p.numpy()] - vy[perm], axis=1)
     errors = {}
-    for fit, trim in (("least_squares", 0.0), ("orthogonal", 2.0)):  # the earlier extraction, the default
+    for fit, trim in (("least_squares", 0.0), ("orthogonal", 1.0)):  # the earlier extraction, the default
         matcher = DivFreeMatcher(prealign="none", descriptor_weight=0.0, extraction_fit=fit, extraction_trim=trim)
         new, new_inv = matcher._spectral_maps(bx, by, emb_x, emb_y, p2p, p2p_inv, x, y)
         errors[fit] = np.linalg.norm(vy[new.numpy()] - vy[perm], axis=1), new
