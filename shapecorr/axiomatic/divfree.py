@@ -238,6 +238,8 @@ def rigid_icp(points_x: torch.Tensor, normals_x: torch.Tensor, points_y: torch.T
 #: (``flow``), or the same product space with the aligned spectral embedding of a functional map fitted to the
 #: flow's cycle-consistent pairs (``spectral``).
 EXTRACTION_MODES = ("flow", "spectral")
+#: Fits of the spectral extraction's functional map: ``orthogonal`` (Procrustes) or ``least_squares``.
+EXTRACTION_FITS = ("orthogonal", "least_squares")
 
 
 def cycle_consistent(points_x: torch.Tensor, points_y: torch.Tensor, p2p: torch.Tensor, p2p_inv: torch.Tensor,
@@ -270,12 +272,18 @@ def cycle_consistent(points_x: torch.Tensor, points_y: torch.Tensor, p2p: torch.
 
 def functional_map_from_maps(evecs_x: torch.Tensor, evecs_y: torch.Tensor, mass_x: torch.Tensor,
                              mass_y: torch.Tensor, p2p: torch.Tensor, p2p_inv: torch.Tensor,
-                             keep_x: torch.Tensor | None = None, keep_y: torch.Tensor | None = None) -> torch.Tensor:
-    """Functional map ``C`` (y's coefficients -> x's) fitted to both point maps by weighted least squares.
+                             keep_x: torch.Tensor | None = None, keep_y: torch.Tensor | None = None,
+                             orthogonal: bool = False) -> torch.Tensor:
+    """Functional map ``C`` (y's coefficients -> x's) fitted to both point maps.
 
-    Minimizes ``sum_i a_i |phi_x(i) C - phi_y(p2p[i])|^2 + sum_j b_j |phi_x(p2p_inv[j]) C - phi_y(j)|^2`` with the
+    Fits ``sum_i a_i |phi_x(i) C - phi_y(p2p[i])|^2 + sum_j b_j |phi_x(p2p_inv[j]) C - phi_y(j)|^2`` with the
     vertex areas ``a = mass_x``, ``b = mass_y`` restricted to the kept vertices: ``phi_x C`` is then y's spectral
-    embedding pulled onto x, aligned with ``phi_y``.
+    embedding pulled onto x, aligned with ``phi_y``. ``orthogonal=False``: the weighted least-squares ``C``.
+    ``orthogonal=True``: ``C = U V^T`` from the SVD ``U S V^T`` of the weighted cross-covariance
+    ``sum a_i phi_x(i)^T phi_y(p2p[i]) + sum b_j phi_x(p2p_inv[j])^T phi_y(j)``, the orthogonal map that best
+    aligns the pairs (orthogonal Procrustes). Between near-isometric shapes with mass-orthonormal bases the
+    functional map is close to orthogonal; the constraint keeps ``C`` determined on a body part whose pairs are
+    left out (the unconstrained fit extrapolates freely there).
 
     Parameters
     ----------
@@ -291,6 +299,8 @@ def functional_map_from_maps(evecs_x: torch.Tensor, evecs_y: torch.Tensor, mass_
     keep_x : (n,) bool, optional
     keep_y : (m,) bool, optional
         Vertices whose pairs enter the fit (default all).
+    orthogonal : bool
+        Fit an orthogonal ``C`` (Procrustes) instead of the least-squares one.
 
     Returns
     -------
@@ -301,7 +311,85 @@ def functional_map_from_maps(evecs_x: torch.Tensor, evecs_y: torch.Tensor, mass_
     design = torch.cat([evecs_x, evecs_x[p2p_inv]])
     target = torch.cat([evecs_y[p2p], evecs_y])
     gram, rhs = normal_equations(design, target, torch.cat([wx, wy]))
+    if orthogonal:
+        if not bool(torch.isfinite(rhs).all()):
+            raise NumericalError("divfree spectral extraction (orthogonal functional map): non-finite inputs")
+        u, _, vh = torch.linalg.svd(rhs)
+        return u @ vh
     return solve_normal_equations(gram, rhs, what="divfree spectral extraction (functional map)")
+
+
+def functional_map_residuals(evecs_x: torch.Tensor, evecs_y: torch.Tensor, fmap: torch.Tensor, p2p: torch.Tensor,
+                             p2p_inv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """How far each pair of the two point maps lies from the functional map, in the aligned spectral embedding.
+
+    Parameters
+    ----------
+    evecs_x : (n, k) float
+    evecs_y : (m, k) float
+    fmap : (k, k) float
+        ``C`` of :func:`functional_map_from_maps`.
+    p2p : (n,) int64
+    p2p_inv : (m,) int64
+
+    Returns
+    -------
+    residual_x : (n,) float64
+        ``|phi_x(i) C - phi_y(p2p[i])|``.
+    residual_y : (m,) float64
+        ``|phi_x(p2p_inv[j]) C - phi_y(j)|``.
+    """
+    phi_x, phi_y, fmap = evecs_x.to(torch.float64), evecs_y.to(torch.float64), fmap.to(torch.float64)
+    aligned = phi_x @ fmap
+    return (aligned - phi_y[p2p]).norm(dim=1), (aligned[p2p_inv] - phi_y).norm(dim=1)
+
+
+def trimmed_functional_map(evecs_x: torch.Tensor, evecs_y: torch.Tensor, mass_x: torch.Tensor,
+                           mass_y: torch.Tensor, p2p: torch.Tensor, p2p_inv: torch.Tensor, keep_x: torch.Tensor,
+                           keep_y: torch.Tensor, trim: float, steps: int, orthogonal: bool = True
+                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`functional_map_from_maps` with the pairs far from the fitted map left out, refitted (trimmed fit).
+
+    A low-frequency functional map cannot follow one limb laid onto the other side while the rest of the body is
+    right, so that limb's pairs keep large residuals (:func:`functional_map_residuals`) and drop out. Each of
+    at most ``steps`` times: the residuals of all of ``keep_x``, ``keep_y`` under the current ``C``, their median
+    ``s`` (over the vertices of both sides, unweighted), and the refit on those whose residual is below
+    ``trim * s`` (``trim = 1``: the better half, a least-trimmed-squares fit). It stops early when the selection
+    repeats; a step that would leave fewer than ``k`` vertices on a side keeps the previous fit.
+
+    Parameters
+    ----------
+    evecs_x, evecs_y, mass_x, mass_y, p2p, p2p_inv
+        As :func:`functional_map_from_maps`.
+    keep_x : (n,) bool
+    keep_y : (m,) bool
+        Vertices that may enter the fit (e.g. :func:`cycle_consistent`).
+    trim : float
+        Residual threshold in multiples of the median residual (> 0).
+    steps : int
+        Refits (0: the plain fit on ``keep_x``, ``keep_y``).
+    orthogonal : bool
+        See :func:`functional_map_from_maps`.
+
+    Returns
+    -------
+    fmap : (k, k) float64
+    inliers_x : (n,) bool
+    inliers_y : (m,) bool
+        The vertices of the last fit.
+    """
+    k = evecs_x.shape[1]
+    fmap = functional_map_from_maps(evecs_x, evecs_y, mass_x, mass_y, p2p, p2p_inv, keep_x, keep_y, orthogonal)
+    in_x, in_y = keep_x, keep_y
+    for _ in range(int(steps)):
+        res_x, res_y = functional_map_residuals(evecs_x, evecs_y, fmap, p2p, p2p_inv)
+        scale = torch.cat([res_x[keep_x], res_y[keep_y]]).median()
+        new_x, new_y = keep_x & (res_x < trim * scale), keep_y & (res_y < trim * scale)
+        if int(new_x.sum()) < k or int(new_y.sum()) < k or (torch.equal(new_x, in_x) and torch.equal(new_y, in_y)):
+            break
+        in_x, in_y = new_x, new_y
+        fmap = functional_map_from_maps(evecs_x, evecs_y, mass_x, mass_y, p2p, p2p_inv, in_x, in_y, orthogonal)
+    return fmap, in_x, in_y
 
 
 class DivFreeMatcher:
@@ -395,6 +483,9 @@ class DivFreeMatcher:
         extraction_weight: float = 0.1,
         extraction_consistency: float = 0.03,
         extraction_iterations: int = 2,
+        extraction_fit: str = "orthogonal",
+        extraction_trim: float = 1.0,
+        extraction_trim_steps: int = 10,
     ):
         modes = [int(m) for m in (modes if isinstance(modes, (list, tuple)) else [modes])]
         n = len(modes)
@@ -454,6 +545,13 @@ class DivFreeMatcher:
         self.extraction_weight = float(extraction_weight)
         self.extraction_consistency = float(extraction_consistency)
         self.extraction_iterations = int(extraction_iterations)
+        if extraction_fit not in EXTRACTION_FITS:
+            raise ConfigError(f"divfree: extraction_fit must be one of {EXTRACTION_FITS}, got {extraction_fit!r}")
+        if not extraction_trim >= 0 or int(extraction_trim_steps) < 0:
+            raise ConfigError("divfree: extraction_trim must be >= 0 (0: no trimming) and extraction_trim_steps >= 0")
+        self.extraction_fit = extraction_fit
+        self.extraction_trim = float(extraction_trim)
+        self.extraction_trim_steps = int(extraction_trim_steps) if extraction_trim > 0 else 0
         uses_descriptor = any(level.descriptor_weight > 0 for level in self.levels)
         self.required_operators = {d: {} for d in self.descriptors} if uses_descriptor else {}
         if prealign == "smooth_shells":  # the rigid stage's basis features need SHOT
@@ -699,8 +797,11 @@ class DivFreeMatcher:
         laid onto the other side's limb maps many-to-one and fails the round trip, so it does not enter the fit.
         ``phi_x C`` is intrinsic and, being fitted to the consistent part of the map, not left/right symmetric: in
         the product space it pulls such a limb to its own side while the coordinates keep the flow's accuracy
-        elsewhere. With fewer consistent vertices than eigenfunctions on a side, all vertices enter the fit. Each
-        of the ``extraction_iterations`` rounds refits the functional map to the previous round's maps.
+        elsewhere. With fewer consistent vertices than eigenfunctions on a side, all vertices enter the fit. A
+        limb laid onto the other side's limb that passes the round trip anyway is left out by the trimmed fit
+        (:func:`trimmed_functional_map`, ``extraction_trim`` times the median residual, ``extraction_trim_steps``
+        refits), and the orthogonal fit (``extraction_fit``) keeps ``C`` right on the limbs left out. Each of
+        the ``extraction_iterations`` rounds refits the functional map to the previous round's maps.
         """
         k = self.extraction_k
         for sample in (x, y):
@@ -715,8 +816,12 @@ class DivFreeMatcher:
             keep_x, keep_y = cycle_consistent(bx, by, p2p, p2p_inv, self.extraction_consistency)
             if int(keep_x.sum()) < k or int(keep_y.sum()) < k:
                 keep_x = keep_y = None
-            fmap = functional_map_from_maps(phi_x, phi_y, x.mass.to(dev), y.mass.to(dev), p2p, p2p_inv,
-                                            keep_x, keep_y)
+            if keep_x is None:
+                keep_x = torch.ones(len(p2p), dtype=torch.bool, device=dev)
+                keep_y = torch.ones(len(p2p_inv), dtype=torch.bool, device=dev)
+            fmap, _, _ = trimmed_functional_map(phi_x, phi_y, x.mass.to(dev), y.mass.to(dev), p2p, p2p_inv, keep_x,
+                                                keep_y, self.extraction_trim, self.extraction_trim_steps,
+                                                self.extraction_fit == "orthogonal")
             spec_x = torch.cat([emb_x, w * (phi_x @ fmap).to(emb_x.dtype)], dim=1)
             spec_y = torch.cat([emb_y, w * phi_y.to(emb_y.dtype)], dim=1)
             p2p, p2p_inv = self._nn(spec_x, spec_y)

@@ -8,12 +8,13 @@ import torch
 import trimesh
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
+from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from shapecorr.axiomatic.divfree import (
-    DivFreeMatcher, cycle_consistent, functional_map_from_maps, knn_graph_edges, orientation_candidates,
-    principal_frame, rigid_icp,
+    DivFreeMatcher, cycle_consistent, functional_map_from_maps, functional_map_residuals, knn_graph_edges,
+    orientation_candidates, principal_frame, rigid_icp, trimmed_functional_map,
 )
 from shapecorr.data.datasets import ShapeSample
 from shapecorr.data.shape import make_shape
@@ -143,6 +144,7 @@ def test_config_has_published_defaults():
     assert matcher.descriptors == ("wks",) and matcher.levels[0].descriptor_weight == 2.0
     assert matcher.required_operators == {"wks": {}, "shot": {}, "eigenbasis": {"k": 509}}
     assert (matcher.extraction, matcher.extraction_k, matcher.extraction_iterations) == ("spectral", 10, 2)
+    assert (matcher.extraction_fit, matcher.extraction_trim, matcher.extraction_trim_steps) == ("orthogonal", 1.0, 10)
     assert DivFreeMatcher(prealign="pca").required_operators == {"wks": {}, "eigenbasis": {"k": 10}}
     assert DivFreeMatcher(prealign="pca", descriptor="shot", extraction="flow").required_operators == {"shot": {}}
 
@@ -312,3 +314,91 @@ def test_spectral_extraction_undoes_a_laid_over_patch():
         DivFreeMatcher(extraction="zoomout")
     with pytest.raises(ConfigError, match="eigenfunctions"):
         DivFreeMatcher(prealign="none", extraction_k=20)._spectral_maps(bx, by, emb_x, emb_y, p2p, p2p_inv, x, y)
+
+
+def _permuted_copy(n_verts: int = 300):
+    """The test surface at FAUST_r's area and a vertex-permuted copy (x's vertex i is y's ``perm[i]``), in the box."""
+    v, f = _blob(n_verts)
+    v = v * np.sqrt((4 / 9) / surface_area(v, f))
+    perm = np.random.default_rng(0).permutation(len(v))
+    vy = np.empty_like(v)
+    vy[perm] = v
+    x, y = _sample(v, f, "x"), _sample(vy, perm[f], "y")
+    tx, ty = torch.tensor(v, dtype=torch.float32), torch.tensor(vy, dtype=torch.float32)
+    box_x, box_y = df.box_normalization(tx, ty, 0.05)
+    return v, vy, perm, x, y, box_x.to_box(tx), box_y.to_box(ty)
+
+
+def test_trimmed_extraction_undoes_a_swap_that_passes_the_round_trip():
+    """Two patches of x exchanged one-to-one (as a limb laid onto the other side's limb whose own image went the
+    other way): the swap passes the round trip, so the consistency filter keeps it and the plain least-squares fit
+    inherits it; the trimmed fit leaves its pairs out, and the extraction puts both patches back."""
+    v, vy, perm, x, y, bx, by = _permuted_copy()
+    a = int(np.argmax(v[:, 0]))
+    b = int(np.argmin(np.abs(np.linalg.norm(v - v[a], axis=1) - 0.3)))
+    ia = np.flatnonzero(np.linalg.norm(v - v[a], axis=1) < 0.12)
+    ib = np.argsort(np.linalg.norm(v - v[b], axis=1))[:len(ia)]
+    assert not set(ia) & set(ib)
+    ra, rb = linear_sum_assignment(np.linalg.norm((v[ia] - v[a])[:, None] - (v[ib] - v[b])[None], axis=2))
+    src = np.arange(len(v))  # x's vertex i -> y's copy of x's vertex src[i]; an involution
+    src[ia[ra]], src[ib[rb]] = ib[rb], ia[ra]
+    swapped = src != np.arange(len(v))
+    inv = np.empty(len(v), dtype=np.int64)
+    inv[perm] = src
+    p2p, p2p_inv = torch.from_numpy(perm[src]), torch.from_numpy(inv)
+    keep_x, keep_y = cycle_consistent(bx, by, p2p, p2p_inv, 0.03)
+    assert bool(keep_x.all()) and bool(keep_y.all())  # the round trip cannot see the swap
+    phi_x, phi_y = x.evecs[:, :10], y.evecs[:, :10]
+    fmap, in_x, in_y = trimmed_functional_map(phi_x, phi_y, x.mass, y.mass, p2p, p2p_inv, keep_x, keep_y, 1.0, 10)
+    assert fmap.shape == (10, 10) and fmap.dtype == torch.float64
+    torch.testing.assert_close(fmap.T @ fmap, torch.eye(10, dtype=torch.float64))
+    # the swapped pairs are left out (on both sides), and the rest is fitted exactly
+    assert not bool(in_x[torch.from_numpy(swapped)].any()) and not bool(in_y[torch.from_numpy(swapped[np.argsort(
+        perm)])].any())
+    assert 0.4 < in_x.float().mean() < 0.6  # the better half
+    res_x, _ = functional_map_residuals(phi_x, phi_y, fmap, p2p, p2p_inv)
+    assert res_x[~swapped].max() < 1e-6 and res_x[swapped].min() > 1.0
+    moved = by[p2p]  # the deformed x where the maps say: the coordinates alone keep the swap
+    emb_x = torch.cat([moved, 0.1 * vertex_normals(moved, x.faces)], 1)
+    emb_y = torch.cat([by, 0.1 * vertex_normals(by, y.faces)], 1)
+    before = np.linalg.norm(vy[p2p.numpy()] - vy[perm], axis=1)
+    errors = {}
+    for fit, trim in (("least_squares", 0.0), ("orthogonal", 1.0)):  # the earlier extraction, the default
+        matcher = DivFreeMatcher(prealign="none", descriptor_weight=0.0, extraction_fit=fit, extraction_trim=trim)
+        new, new_inv = matcher._spectral_maps(bx, by, emb_x, emb_y, p2p, p2p_inv, x, y)
+        errors[fit] = np.linalg.norm(vy[new.numpy()] - vy[perm], axis=1), new
+    assert before[swapped].mean() > 0.25
+    assert errors["least_squares"][0][swapped].mean() > 0.5 * before[swapped].mean()  # the swap survives
+    err, new = errors["orthogonal"]
+    assert err[swapped].mean() < 0.3 * before[swapped].mean()
+    assert (new.numpy()[~swapped] == perm[~swapped]).all() and new_inv.shape == (len(v),)
+    with pytest.raises(ConfigError, match="extraction_fit"):
+        DivFreeMatcher(extraction_fit="lstsq")
+    with pytest.raises(ConfigError, match="extraction_trim"):
+        DivFreeMatcher(extraction_trim=-1.0)
+
+
+def test_orthogonal_functional_map_keeps_a_left_out_part_right():
+    """Half of the surface left out of the fit, the other half mapped with a few neighbours' noise: the
+    least-squares functional map extrapolates wrongly onto the left-out half, the orthogonal one does not."""
+    v, vy, perm, x, y, _, _ = _permuted_copy()
+    rng = np.random.default_rng(1)
+    neighbours = cKDTree(v).query(v, 7)[1]
+    src = neighbours[np.arange(len(v)), rng.integers(0, 7, len(v))]
+    inv = np.empty(len(v), dtype=np.int64)
+    inv[perm] = neighbours[np.arange(len(v)), rng.integers(0, 7, len(v))]
+    p2p, p2p_inv = torch.from_numpy(perm[src]), torch.from_numpy(inv)
+    out = v[:, 0] > np.median(v[:, 0])
+    keep_x, keep_y = torch.from_numpy(~out), torch.from_numpy(~out[np.argsort(perm)])
+    phi_x, phi_y = x.evecs[:, :10].to(torch.float64), y.evecs[:, :10]
+    errors = {}
+    for orthogonal in (False, True):
+        fmap = functional_map_from_maps(phi_x, phi_y, x.mass, y.mass, p2p, p2p_inv, keep_x, keep_y, orthogonal)
+        pulled = cKDTree(phi_y.numpy()).query((phi_x @ fmap).numpy())[1]  # the spectral map alone
+        errors[orthogonal] = np.linalg.norm(vy[pulled] - v, axis=1)
+    assert errors[False][out].mean() > 0.05
+    assert errors[True][out].mean() < 0.01 and errors[True][~out].mean() < 0.01
+    exact = functional_map_from_maps(phi_x, phi_y, x.mass, y.mass, torch.from_numpy(perm),
+                                     torch.from_numpy(np.argsort(perm)), orthogonal=True)
+    torch.testing.assert_close(exact, functional_map_from_maps(phi_x, phi_y, x.mass, y.mass, torch.from_numpy(perm),
+                                                               torch.from_numpy(np.argsort(perm))))
