@@ -65,6 +65,34 @@ def test_fps_all_points_and_duplicates():
     assert len(np.unique(pts[out[:5]], axis=0)) == 5
 
 
+def plain_fps(points: np.ndarray, n_samples: int, start: int) -> list[int]:
+    """Oracle: the unpruned vectorized greedy loop (every point updated at every sample)."""
+    nearest, out, current = np.full(len(points), np.inf), [], start
+    for _ in range(n_samples):
+        out.append(current)
+        diff = points - points[current]
+        np.minimum(nearest, np.einsum("ij,ij->i", diff, diff), out=nearest)
+        nearest[current] = -1.0
+        current = int(np.argmax(nearest))
+    return out
+
+
+@pytest.mark.parametrize("per_box", [1, 4, 16])
+def test_fps_box_pruning_matches_plain_loop(monkeypatch, per_box):
+    """Many small boxes: the pruned search picks exactly the plain loop's samples, ties and duplicates too."""
+    import shapecorr.geometry.sampling as sampling
+
+    monkeypatch.setattr(sampling, "POINTS_PER_BOX", per_box)
+    rng = np.random.default_rng(3)
+    grid = np.stack(np.meshgrid(np.arange(9.0), np.arange(7.0), np.arange(3.0)), -1).reshape(-1, 3)  # ties
+    sphere = rng.normal(size=(800, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    for pts in (grid, sphere, np.repeat(rng.normal(size=(40, 3)), 3, axis=0), rng.normal(size=(500, 2))):
+        for n_samples, start in ((len(pts), 0), (len(pts) // 4, len(pts) - 1)):
+            out = farthest_point_sampling(pts, n_samples, start=start)
+            assert out.tolist() == plain_fps(pts, n_samples, start)
+
+
 def test_fps_invalid_arguments(cloud):
     with pytest.raises(ConfigError):
         farthest_point_sampling(cloud, 0)
