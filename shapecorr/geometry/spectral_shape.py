@@ -92,3 +92,27 @@ def make_spectral_shape(
             raise InvalidMeshError(f"{name}: the {label} contain NaN or Inf")
     coeffs = spectral_coefficients(evecs, mass, verts)
     return SpectralShape(verts=verts, faces=faces, evecs=evecs, mass=mass, coeffs=coeffs, name=name)
+
+
+def reorder_vertices(shape: SpectralShape, order: torch.Tensor) -> SpectralShape:
+    """The same shape with its vertices renumbered: new vertex ``i`` is old vertex ``order[i]``.
+
+    Parameters
+    ----------
+    shape : SpectralShape
+    order : (n,) int64
+        A permutation of the vertices.
+
+    Returns
+    -------
+    SpectralShape
+        Rows of ``verts``, ``evecs``, ``mass`` permuted, ``faces`` renumbered (same face order), ``coeffs`` kept
+        (they do not depend on the vertex order).
+    """
+    n = shape.n_verts
+    if order.shape != (n,) or not torch.equal(torch.sort(order).values, torch.arange(n, device=order.device)):
+        raise InvalidMeshError(f"{shape.name}: the vertex order must be a permutation of its {n} vertices")
+    inverse = torch.empty_like(order)
+    inverse[order] = torch.arange(n, device=order.device)
+    return replace(shape, verts=shape.verts[order], faces=inverse[shape.faces], evecs=shape.evecs[order],
+                   mass=shape.mass[order])

@@ -100,17 +100,25 @@ def kdtree_leafsize(dim: int) -> int:
     return KDTREE_LOW_DIM_LEAFSIZE if dim <= KDTREE_LOW_DIM else KDTREE_LEAFSIZE
 
 
-def _query_in_order(tree: cKDTree, queries: np.ndarray, order: np.ndarray, workers: int) -> np.ndarray:
-    """``_query(tree, queries)`` with the queries processed in ``order`` (results in the original order).
+def spatial_order(points: torch.Tensor) -> torch.Tensor:
+    """A cache-friendly order of points: nearby points get nearby positions (the order of a k-d tree's leaves).
 
-    ``order`` is the other side's tree order (``cKDTree.indices``): consecutive queries are close in space, so
-    they visit the same nodes and points of ``tree`` while these are still in the CPU caches. Each query's
-    result does not depend on the order (exact search). At 148k points the queries took 15 % less time in
-    505 dimensions (5.7 vs 6.7 s) and 16 % less in 207 (1.9 vs 2.2 s) than in vertex order.
+    Queries of a k-d tree run faster in this order when the tree does not fit the CPU caches: consecutive
+    queries visit the same nodes and points. At 148k points and 505 dimensions (a 600 MB tree) the queries took
+    5.3 s in the spatial order of the vertex positions and 6.5 s in the vertex order of a remeshed scan; each
+    query's result does not depend on the order (exact search).
+
+    Parameters
+    ----------
+    points : (n, d) float
+
+    Returns
+    -------
+    (n,) int64
+        A permutation of ``range(n)``, on the points' device.
     """
-    out = np.empty(queries.shape[0], dtype=np.int64)
-    out[order] = _query(tree, queries[order], workers)
-    return out
+    tree = cKDTree(points.detach().to("cpu", torch.float64).numpy(), leafsize=KDTREE_LEAFSIZE)
+    return torch.from_numpy(np.asarray(tree.indices, dtype=np.int64)).to(points.device)
 
 
 def _kdtree(emb_x: torch.Tensor, emb_y: torch.Tensor, workers: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -126,13 +134,12 @@ def _kdtree(emb_x: torch.Tensor, emb_y: torch.Tensor, workers: int) -> tuple[tor
             job = pool.submit(_tree, x, **options)
             tree_y = _tree(y, **options)
             tree_x = job.result()
-            job = pool.submit(_query_in_order, tree_x, y, tree_y.indices, threads - threads // 2)  # Y -> X
-            nn_y = _query_in_order(tree_y, x, tree_x.indices, threads // 2)  # for each point of X, one of Y
+            job = pool.submit(_query, tree_x, y, threads - threads // 2)  # for each point of Y, one of X
+            nn_y = _query(tree_y, x, threads // 2)  # for each point of X, the nearest of Y
             nn_x = job.result()
     else:
         tree_x, tree_y = _tree(x, **options), _tree(y, **options)
-        nn_y = _query_in_order(tree_y, x, tree_x.indices, 1)
-        nn_x = _query_in_order(tree_x, y, tree_y.indices, 1)
+        nn_y, nn_x = _query(tree_y, x, 1), _query(tree_x, y, 1)
     device = emb_x.device
     return torch.from_numpy(nn_y).to(device), torch.from_numpy(nn_x).to(device)
 

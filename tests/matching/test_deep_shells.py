@@ -16,7 +16,7 @@ from shapecorr.geometry.mesh import triangle_areas
 from shapecorr.geometry.normals import vertex_normals
 from shapecorr.geometry.remeshing import remesh
 from shapecorr.geometry.shot_descriptor import shot
-from shapecorr.geometry.spectral_shape import make_spectral_shape
+from shapecorr.geometry.spectral_shape import make_spectral_shape, reorder_vertices
 from shapecorr.matching.deep_shells import (
     DeepShellsConfig,
     _shell,
@@ -31,7 +31,7 @@ from shapecorr.matching.deep_shells import (
     refine_deep_shells,
 )
 from shapecorr.matching.least_squares import ridge_lstsq, solve_normal_equations
-from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors
+from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors, spatial_order
 
 N_EIGS = 60
 #: Small refinement schedule for the ~600-vertex test meshes (the published one goes to k = 499).
@@ -438,6 +438,51 @@ def test_refinement_repairs_a_perturbed_map(pair):
     match = refine_deep_shells(x, y, noisy, inverse, DeepShellsConfig(**SMALL_REFINE))
     assert before > 2.0
     assert _map_error(pair, match.map_x_to_y) < 0.5
+
+
+def test_refinement_in_spatial_order_returns_the_same_maps(pair, monkeypatch):
+    """Large shapes are refined with their vertices in a spatial order: same maps, original numbering."""
+    import shapecorr.matching.deep_shells as ds
+
+    x, y = pair["x"], pair["y"]
+    g = torch.Generator().manual_seed(8)
+    noisy = pair["gt"].clone()
+    wrong = torch.rand(x.n_verts, generator=g) < 0.3
+    noisy[wrong] = torch.randint(0, y.n_verts, (int(wrong.sum()),), generator=g)
+    inverse = torch.from_numpy(cKDTree(x.verts.numpy()).query(pair["rest_y"])[1])
+    cfg = DeepShellsConfig(**SMALL_REFINE)
+    plain = refine_deep_shells(x, y, noisy, inverse, cfg)
+    calls = []
+
+    def recording(points):
+        calls.append(points.shape[0])
+        return spatial_order(points)
+
+    monkeypatch.setattr(ds, "SPATIAL_ORDER_MIN_VERTS", 0)
+    monkeypatch.setattr(ds, "spatial_order", recording)
+    ordered = refine_deep_shells(x, y, noisy, inverse, cfg)
+    assert calls == [x.n_verts, y.n_verts]
+    assert not torch.equal(spatial_order(x.verts), torch.arange(x.n_verts))  # really renumbered
+    assert torch.equal(ordered.map_x_to_y, plain.map_x_to_y) and torch.equal(ordered.map_y_to_x, plain.map_y_to_x)
+    # the sums of the normal equations run in another order: equal up to rounding
+    torch.testing.assert_close(ordered.deformed_x, plain.deformed_x, rtol=0, atol=1e-6)
+    torch.testing.assert_close(ordered.fmap, plain.fmap, rtol=0, atol=1e-5)
+    # brute-force search (GPU default): no reordering
+    calls.clear()
+    refine_deep_shells(x, y, noisy, inverse, replace(cfg, nn_backend="brute"))
+    assert calls == []
+
+
+def test_reorder_vertices(pair):
+    x = pair["x"]
+    order = torch.randperm(x.n_verts, generator=torch.Generator().manual_seed(0))
+    r = reorder_vertices(x, order)
+    assert torch.equal(r.verts, x.verts[order]) and torch.equal(r.evecs, x.evecs[order])
+    assert torch.equal(order[r.faces], x.faces)  # the same triangles
+    with pytest.raises(InvalidMeshError, match="permutation"):
+        reorder_vertices(x, order[:-1])
+    with pytest.raises(InvalidMeshError, match="permutation"):
+        reorder_vertices(x, torch.zeros_like(order))
 
 
 def test_query_subsamples_large_shapes_for_the_ot_level(pair):
