@@ -427,13 +427,19 @@ def test_identity_pair_gives_the_identity_map(pair):
     torch.testing.assert_close(match.map_y_to_x, ident)
 
 
-def test_refinement_repairs_a_perturbed_map(pair):
+def _perturbed_maps(pair, seed):
+    """(X -> Y: the true map with 30 % of its entries random, Y -> X: nearest vertices of the undeformed shapes)."""
     x, y = pair["x"], pair["y"]
-    g = torch.Generator().manual_seed(7)
+    g = torch.Generator().manual_seed(seed)
     noisy = pair["gt"].clone()
     wrong = torch.rand(x.n_verts, generator=g) < 0.3
     noisy[wrong] = torch.randint(0, y.n_verts, (int(wrong.sum()),), generator=g)
-    inverse = torch.from_numpy(cKDTree(x.verts.numpy()).query(pair["rest_y"])[1])
+    return noisy, torch.from_numpy(cKDTree(x.verts.numpy()).query(pair["rest_y"])[1])
+
+
+def test_refinement_repairs_a_perturbed_map(pair):
+    x, y = pair["x"], pair["y"]
+    noisy, inverse = _perturbed_maps(pair, seed=7)
     before = _map_error(pair, noisy)
     match = refine_deep_shells(x, y, noisy, inverse, DeepShellsConfig(**SMALL_REFINE))
     assert before > 2.0
@@ -445,11 +451,7 @@ def test_refinement_in_spatial_order_returns_the_same_maps(pair, monkeypatch):
     import shapecorr.matching.deep_shells as ds
 
     x, y = pair["x"], pair["y"]
-    g = torch.Generator().manual_seed(8)
-    noisy = pair["gt"].clone()
-    wrong = torch.rand(x.n_verts, generator=g) < 0.3
-    noisy[wrong] = torch.randint(0, y.n_verts, (int(wrong.sum()),), generator=g)
-    inverse = torch.from_numpy(cKDTree(x.verts.numpy()).query(pair["rest_y"])[1])
+    noisy, inverse = _perturbed_maps(pair, seed=8)
     cfg = DeepShellsConfig(**SMALL_REFINE)
     plain = refine_deep_shells(x, y, noisy, inverse, cfg)
     calls = []
