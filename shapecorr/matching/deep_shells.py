@@ -72,7 +72,7 @@ from shapecorr.geometry.shells import sigmoid_shell_weights, smooth_shell
 from shapecorr.geometry.spectral_shape import SpectralShape, reorder_vertices
 from shapecorr.geometry.finiteness import all_finite
 from shapecorr.matching.least_squares import DEFAULT_RIDGE, normal_equations, solve_normal_equations
-from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors, spatial_order
+from shapecorr.matching.nearest_neighbors import bidirectional_nearest_neighbors, resolved_backend, spatial_order
 from shapecorr.matching.sinkhorn import (
     DEFAULT_NUM_ITERS,
     DEFAULT_SIGMA,
@@ -878,7 +878,7 @@ def refine_deep_shells(
     _check_eigs(shape_y, ks, config)
     if map_x_to_y.shape != (shape_x.n_verts,) or map_y_to_x.shape != (shape_y.n_verts,):
         raise ConfigError("refine_deep_shells: the initial maps must have one entry per vertex of X and of Y")
-    kdtree = config.nn_backend == "kdtree" or (config.nn_backend == "auto" and shape_x.evecs.device.type != "cuda")
+    kdtree = resolved_backend(config.nn_backend, shape_x.evecs.device) == "kdtree"
     if not kdtree or max(shape_x.n_verts, shape_y.n_verts) < SPATIAL_ORDER_MIN_VERTS:
         return _refine_levels(shape_x, shape_y, map_x_to_y, map_y_to_x, config)
     with torch.no_grad():

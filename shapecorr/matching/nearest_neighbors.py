@@ -97,6 +97,18 @@ def _query(tree: cKDTree, queries: np.ndarray, workers: int = 1) -> np.ndarray:
         raise
 
 
+def _nearest(points: np.ndarray, queries: np.ndarray, workers: int) -> np.ndarray:
+    tree = _tree(points, leafsize=kdtree_leafsize(points.shape[1]), balanced_tree=KDTREE_BALANCED)
+    return _query(tree, queries, workers)
+
+
+def resolved_backend(backend: str, device: torch.device) -> str:
+    """The search backend ``"auto"`` stands for on ``device`` (``"brute"`` on CUDA, else ``"kdtree"``)."""
+    if backend != "auto":
+        return backend
+    return "brute" if torch.device(device).type == "cuda" else "kdtree"
+
+
 def kdtree_leafsize(dim: int) -> int:
     """Points per leaf of the k-d trees of :func:`bidirectional_nearest_neighbors` in ``dim`` dimensions."""
     return KDTREE_LOW_DIM_LEAFSIZE if dim <= KDTREE_LOW_DIM else KDTREE_LEAFSIZE
@@ -127,21 +139,16 @@ def _kdtree(emb_x: torch.Tensor, emb_y: torch.Tensor, workers: int) -> tuple[tor
     x = emb_x.detach().to("cpu", torch.float64).numpy()
     y = emb_y.detach().to("cpu", torch.float64).numpy()
     threads = _available_cores() if workers == -1 else max(1, int(workers))
-    options = dict(leafsize=kdtree_leafsize(x.shape[1]), balanced_tree=KDTREE_BALANCED)
     # non-finite points or queries: scipy's own check, raised by _tree / _query as NumericalError
     if threads >= 2:
-        # scipy releases the GIL while building and querying, so the two trees are built and the two directions
-        # queried concurrently (tree builds are not parallelized by `workers`), each with half of the threads.
+        # scipy releases the GIL while building and querying, so the two directions (tree build included,
+        # which `workers` does not parallelize) run concurrently, each with half of the query threads.
         with ThreadPoolExecutor(max_workers=2) as pool:
-            job = pool.submit(_tree, x, **options)
-            tree_y = _tree(y, **options)
-            tree_x = job.result()
-            job = pool.submit(_query, tree_x, y, threads - threads // 2)  # for each point of Y, one of X
-            nn_y = _query(tree_y, x, threads // 2)  # for each point of X, the nearest of Y
+            job = pool.submit(_nearest, x, y, threads - threads // 2)  # for each point of Y, one of X
+            nn_y = _nearest(y, x, threads // 2)  # for each point of X, the nearest of Y
             nn_x = job.result()
     else:
-        tree_x, tree_y = _tree(x, **options), _tree(y, **options)
-        nn_y, nn_x = _query(tree_y, x, 1), _query(tree_x, y, 1)
+        nn_y, nn_x = _nearest(y, x, 1), _nearest(x, y, 1)
     device = emb_x.device
     return torch.from_numpy(nn_y).to(device), torch.from_numpy(nn_x).to(device)
 
@@ -215,8 +222,7 @@ def bidirectional_nearest_neighbors(
     if backend not in NN_BACKENDS:
         raise ConfigError(f"nearest-neighbour backend must be one of {NN_BACKENDS}, got {backend!r}")
     _check_shapes(emb_x, emb_y)
-    if backend == "auto":
-        backend = "brute" if emb_x.device.type == "cuda" else "kdtree"
+    backend = resolved_backend(backend, emb_x.device)
     if backend == "kdtree":
         if not SCIPY_CHECKS_FINITE:
             _check_finite(emb_x, emb_y)
